@@ -1,0 +1,6 @@
+"""guidedmatch: guided image feature matching with feature spatial order (Teng & Dong) and epipolar geometry."""
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from .results import Failure, MatchResult  # noqa: F401

@@ -1,0 +1,75 @@
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from guidedmatch.cli import main, read_matches
+
+
+@pytest.fixture(scope="module")
+def image_files(tmp_path_factory, small_scene):
+    d = tmp_path_factory.mktemp("imgs")
+    cv2.imwrite(str(d / "a.png"), small_scene.image1)
+    cv2.imwrite(str(d / "b.png"), small_scene.image2)
+    cv2.imwrite(str(d / "blank.png"), np.full((100, 100), 127, np.uint8))
+    (d / "corrupt.png").write_bytes(b"\x89PNG garbage")
+    return d
+
+
+def test_match_roundtrip_npz(image_files, tmp_path, capsys):
+    out = tmp_path / "m.npz"
+    rc = main(["match", str(image_files / "a.png"), str(image_files / "b.png"), "--mode", "bf", "-o", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "comparisons" in text and "matches" in text
+    d = read_matches(out)
+    assert d["pairs"].shape[1] == 2 and len(d["pairs"]) == len(d["distances"]) > 50
+    np.testing.assert_array_equal(d["points1"], d["keypoints1"][d["pairs"][:, 0]])
+    assert d["stats"]["comparisons"] == len(d["keypoints1"]) * len(d["keypoints2"])
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".json"])
+def test_match_text_outputs(image_files, tmp_path, suffix):
+    out = tmp_path / f"m{suffix}"
+    assert main(["match", str(image_files / "a.png"), str(image_files / "b.png"), "--mode", "bf",
+                 "--max-features", "300", "-o", str(out)]) == 0
+    text = out.read_text()
+    if suffix == ".json":
+        assert len(json.loads(text)["pairs"]) > 0
+    else:
+        assert text.startswith("i1,i2,x1,y1,x2,y2,distance") and text.count("\n") > 10
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["match", "{d}/missing.png", "{d}/b.png"], "not found"),
+    (["match", "{d}/corrupt.png", "{d}/b.png"], "cannot read"),
+    (["match", "{d}/blank.png", "{d}/b.png", "--mode", "bf"], "no features"),
+    (["match", "{d}/a.png", "{d}/b.png", "--mode", "bf", "-o", "{d}/out.txt"], "unknown output format"),
+    (["match", "{d}/a.png", "{d}/b.png", "--detector-option", "nonsense"], "key=value"),
+])
+def test_errors_are_one_line_without_traceback(image_files, capsys, args, msg):
+    rc = main([a.format(d=image_files) for a in args])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.startswith("guidedmatch: error:") and msg in err
+    assert "Traceback" not in err and err.count("\n") == 1
+    assert not (image_files / "out.txt").exists()
+
+
+def test_help_for_every_command(capsys):
+    for cmd in (["--help"], ["match", "--help"], ["demo", "--help"], ["experiment", "--help"], ["bench", "--help"]):
+        with pytest.raises(SystemExit) as e:
+            main(cmd)
+        assert e.value.code == 0
+        assert "usage" in capsys.readouterr().out
+
+
+def test_demo_small(tmp_path, capsys):
+    rc = main(["demo", "--out", str(tmp_path), "--size", "480x360", "--roll", "20"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "precision" in out and "bf" in out
+    assert (tmp_path / "demo_matches.png").stat().st_size > 10_000
+    res = json.loads((tmp_path / "demo_results.json").read_text())
+    assert res["rows"][0]["mode"] == "bf" and res["rows"][0]["true"] > 0
