@@ -139,3 +139,169 @@ def hamming_col_best(q, t):
         best[j] = k
         bd[j] = b
     return best, bd
+
+
+# --------------------------------------------------------------------------- guided candidates
+def build_grid(pts: np.ndarray, cell: float):
+    """Bucket points ``(N, 2)`` into square cells of side ``cell`` px (CSR layout).
+
+    Returns ``(origin (2,), ncx, ncy, cell_start (ncx*ncy+1,) int64, cell_items (N,) int64)``; points of
+    cell ``cy * ncx + cx`` are ``cell_items[cell_start[c]:cell_start[c+1]]`` (ascending index).
+    """
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros(2), 1, 1, np.zeros(2, np.int64), np.zeros(0, np.int64)
+    origin = pts.min(axis=0)
+    span = pts.max(axis=0) - origin
+    ncx = int(span[0] // cell) + 1
+    ncy = int(span[1] // cell) + 1
+    cx = np.minimum(((pts[:, 0] - origin[0]) // cell).astype(np.int64), ncx - 1)
+    cy = np.minimum(((pts[:, 1] - origin[1]) // cell).astype(np.int64), ncy - 1)
+    cid = cy * ncx + cx
+    items = np.argsort(cid, kind="stable").astype(np.int64)
+    start = np.zeros(ncx * ncy + 1, np.int64)
+    np.cumsum(np.bincount(cid, minlength=ncx * ncy), out=start[1:])
+    return origin, ncx, ncy, start, items
+
+
+@njit(inline="always", cache=True)
+def _push(d, j, b1, j1, b2, j2):
+    # top-2 update; equal distances prefer the lower index (deterministic, like argmin)
+    if d < b1 or (d == b1 and j < j1):
+        return d, j, b1, j1
+    if d < b2 or (d == b2 and j < j2):
+        return b1, j1, d, j
+    return b1, j1, b2, j2
+
+
+@njit(inline="always", cache=True)
+def _scan_cell(c, qd, desc2, pts2, lines_q, use_band, band, lo, hi, start, items, distfn, b1, j1, b2, j2, cnt):
+    a = lines_q[0]
+    b = lines_q[1]
+    cc = lines_q[2]
+    for p in range(start[c], start[c + 1]):
+        j = items[p]
+        x = pts2[j, 0]
+        if x < lo or x > hi:
+            continue
+        if use_band and abs(a * x + b * pts2[j, 1] + cc) > band:
+            continue
+        d = distfn(qd, desc2[j])
+        cnt += 1
+        b1, j1, b2, j2 = _push(d, j, b1, j1, b2, j2)
+    return b1, j1, b2, j2, cnt
+
+
+@njit(parallel=True, cache=True)
+def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
+                origin, cell, ncx, ncy, start, items, distfn):
+    """Best two candidates of each query among image-2 features in its search region.
+
+    The region of query ``q`` is ``{j : xlo[q] <= pts2[j,0] <= xhi[q]}`` (spatial-order x-range) and, when
+    ``use_band``, ``|lines[q] . (pts2[j], 1)| <= band`` (epipolar band; lines normalized so a^2+b^2=1).
+    All coordinates are the (aligned) image-2 coordinates the grid was built on. Only grid cells the
+    region can touch are visited: columns when the line is closer to horizontal, rows otherwise.
+
+    Returns ``(i1, d1, i2, d2, ncand)``; ``d`` are raw ``distfn`` values (squared L2 or Hamming) and
+    ``ncand[q]`` is the exact number of descriptor distances evaluated for query ``q``.
+    """
+    nq = queries.shape[0]
+    i1 = np.full(nq, -1, np.int64)
+    i2 = np.full(nq, -1, np.int64)
+    d1 = np.full(nq, np.inf, np.float32)
+    d2 = np.full(nq, np.inf, np.float32)
+    ncand = np.zeros(nq, np.int64)
+    gx0 = origin[0]
+    gy0 = origin[1]
+    gx1 = gx0 + ncx * cell
+    gy1 = gy0 + ncy * cell
+    eps = 1e-9
+    for q in prange(nq):
+        qd = desc1[queries[q]]
+        lo = xlo[q]
+        hi = xhi[q]
+        a = lines[q, 0]
+        b = lines[q, 1]
+        c = lines[q, 2]
+        b1 = np.float32(np.inf)
+        b2 = np.float32(np.inf)
+        j1 = -1
+        j2 = -1
+        cnt = 0
+        xa = max(lo, gx0)
+        xb = min(hi, gx1)
+        if xa > xb:
+            continue
+        cx_lo = int((xa - gx0) // cell)
+        cx_hi = min(int((xb - gx0) // cell), ncx - 1)
+        if not use_band:
+            for cx in range(cx_lo, cx_hi + 1):
+                for cy in range(ncy):
+                    b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], False, band, lo, hi,
+                                                     start, items, distfn, b1, j1, b2, j2, cnt)
+        elif abs(b) >= abs(a):
+            # mostly horizontal line: walk columns, rows limited to the band around the line
+            m = band / abs(b) + eps
+            for cx in range(cx_lo, cx_hi + 1):
+                u0 = gx0 + cx * cell
+                u1 = u0 + cell
+                ya = -(a * u0 + c) / b
+                yb = -(a * u1 + c) / b
+                ymin = min(ya, yb) - m
+                ymax = max(ya, yb) + m
+                if ymax < gy0 or ymin > gy1:
+                    continue
+                cy_lo = max(0, int((ymin - gy0) // cell))
+                cy_hi = min(ncy - 1, int((ymax - gy0) // cell))
+                for cy in range(cy_lo, cy_hi + 1):
+                    b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], True, band, lo, hi,
+                                                     start, items, distfn, b1, j1, b2, j2, cnt)
+        else:
+            # mostly vertical line: walk rows, columns limited to the band and the x-range
+            m = band / abs(a) + eps
+            ry0 = gy0
+            ry1 = gy1
+            if abs(b) > 1e-12 and np.isfinite(lo) and np.isfinite(hi):
+                # rows where the band can meet x in [lo, hi]
+                t1 = (-a * lo - c - band) / b
+                t2 = (-a * lo - c + band) / b
+                t3 = (-a * hi - c - band) / b
+                t4 = (-a * hi - c + band) / b
+                ry0 = max(gy0, min(min(t1, t2), min(t3, t4)) - eps)
+                ry1 = min(gy1, max(max(t1, t2), max(t3, t4)) + eps)
+            if ry0 > ry1:
+                continue
+            cy_lo = max(0, int((ry0 - gy0) // cell))
+            cy_hi = min(ncy - 1, int((ry1 - gy0) // cell))
+            for cy in range(cy_lo, cy_hi + 1):
+                v0 = gy0 + cy * cell
+                v1 = v0 + cell
+                xa2 = -(b * v0 + c) / a
+                xb2 = -(b * v1 + c) / a
+                xmin = max(min(xa2, xb2) - m, xa)
+                xmax = min(max(xa2, xb2) + m, xb)
+                if xmin > xmax:
+                    continue
+                c_lo = max(0, int((xmin - gx0) // cell))
+                c_hi = min(ncx - 1, int((xmax - gx0) // cell))
+                for cx in range(c_lo, c_hi + 1):
+                    b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], True, band, lo, hi,
+                                                     start, items, distfn, b1, j1, b2, j2, cnt)
+        i1[q] = j1
+        i2[q] = j2
+        d1[q] = b1
+        d2[q] = b2
+        ncand[q] = cnt
+    return i1, d1, i2, d2, ncand
+
+
+@njit(inline="always", cache=True)
+def l2sq_dist(a, b):
+    """Squared L2 between two float32 vectors (Numba)."""
+    return _l2sq(a, b)
+
+
+@njit(inline="always", cache=True)
+def hamming_dist(a, b):
+    """Hamming distance between two uint64 word rows (Numba)."""
+    return _hamming(a, b)

@@ -219,7 +219,9 @@ def make_scene(size: tuple[int, int] = (1600, 1200), roll_deg: float = 30.0, see
     # then rolled about its optical axis by roll_deg
     direction = np.array([rng.uniform(0.6, 1.0) * rng.choice([-1, 1]), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3)])
     c2 = baseline * direction / np.linalg.norm(direction)
-    target = np.array([0, 0, 7.5])
+    # look at a point off camera 1's optical axis: intersecting optical axes make Bougnoux's focal
+    # estimate degenerate (Bougnoux 1998), which real camera pairs rarely are exactly
+    target = np.array([rng.uniform(0.4, 0.9) * rng.choice([-1, 1]), rng.uniform(0.3, 0.7) * rng.choice([-1, 1]), 7.5])
     z = (target - c2) / np.linalg.norm(target - c2)
     x = np.cross(ey, z)
     x /= np.linalg.norm(x)
