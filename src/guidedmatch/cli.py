@@ -92,8 +92,8 @@ def read_matches(path) -> dict:
     return d
 
 
-def run_mode(f1, f2, mode: str, config_overrides: dict | None = None):
-    """Match two feature sets with ``mode``; ``bf`` uses :mod:`guidedmatch.bruteforce` options."""
+def run_mode(f1, f2, mode: str, config_overrides: dict | None = None, return_models: bool = False):
+    """Match two feature sets with ``mode`` (``--config`` keys are :class:`MatcherConfig` fields)."""
     config_overrides = dict(config_overrides or {})
     if mode not in MODES:
         raise CLIError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
@@ -110,13 +110,14 @@ def run_mode(f1, f2, mode: str, config_overrides: dict | None = None):
         bad = set(config_overrides) - allowed
         if bad:
             raise CLIError(f"unknown config key(s) for bf: {', '.join(sorted(bad))}")
-        return match_bruteforce(f1, f2, **config_overrides)
+        res = match_bruteforce(f1, f2, **config_overrides)
+        return (res, None) if return_models else res
     try:
         config = matcher.MatcherConfig(**config_overrides)
     except TypeError as exc:
         names = ", ".join(f.name for f in dataclasses.fields(matcher.MatcherConfig))
         raise CLIError(f"bad --config: {exc}. Known keys: {names}") from None
-    return matcher.match(f1, f2, mode=mode, config=config)
+    return matcher.match(f1, f2, mode=mode, config=config, return_models=return_models)
 
 
 def _detect_both(img1, img2, detector, max_features, options):
@@ -139,7 +140,7 @@ def cmd_match(args) -> int:
     t0 = time.perf_counter()
     f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, _parse_kv(args.detector_option, "--detector-option"))
     t_det = time.perf_counter() - t0
-    result = run_mode(f1, f2, args.mode, _parse_kv(args.config, "--config"))
+    result, models = run_mode(f1, f2, args.mode, _parse_kv(args.config, "--config"), return_models=True)
     st = result.stats
     print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s)")
     print(f"mode          : {args.mode}")
@@ -155,10 +156,9 @@ def cmd_match(args) -> int:
         from . import plots
 
         if args.show_regions:
-            plots_regions = getattr(plots, "search_regions", None)
-            if plots_regions is None:
-                raise CLIError("--show-regions needs a guided mode")
-            plots_regions(args.plot, img1, img2, f1, f2, result)
+            if models is None:
+                raise CLIError("--show-regions needs a guided mode whose models were fitted (see the fallbacks above)")
+            plots.search_regions(args.plot, img1, img2, f1, f2, result, models)
         else:
             plots.motion_field(args.plot, img1, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
                                None, f"{args.mode}: {len(result)} matches")

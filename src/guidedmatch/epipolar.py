@@ -117,7 +117,7 @@ def check_points(x1, x2, min_points: int = MIN_POINTS) -> tuple[np.ndarray, np.n
         return Failure(f"non-finite coordinates (NaN/inf) in {bad} correspondences", {"num_bad": bad})
     for name, p in (("image 1", a), ("image 2", b)):
         s = np.linalg.svd(p - p.mean(0), compute_uv=False)
-        if s[1] <= 1e-9 * (1.0 + s[0]):
+        if len(s) < 2 or s[1] <= 1e-9 * (1.0 + s[0]):
             return Failure(f"degenerate configuration: all points of {name} are collinear", {"image": name})
     return np.ascontiguousarray(a), np.ascontiguousarray(b)
 
@@ -167,6 +167,9 @@ def estimate_fundamental(
         seed: USAC random generator state (``cv2.UsacParams.randomGeneratorState``); same input and
             seed -> same output. The global ``cv2`` RNG is not touched.
 
+    Note: OpenCV's USAC converts the points to float32, so even noiseless correspondences leave
+    residual epipolar distances of up to ~1e-3 px (for coordinates of a few hundred pixels).
+
     Returns:
         :class:`FundamentalResult` (truthy), or a falsy :class:`Failure` when there are fewer than 8
         correspondences, non-finite coordinates, collinear points, when USAC finds no model, the
@@ -204,7 +207,7 @@ def estimate_fundamental(
         F = F[:3]
     raw_s = np.linalg.svd(F, compute_uv=False) if np.isfinite(F).all() else np.full(3, np.nan)
     Fn = normalize_fundamental(F)
-    if not Fn:
+    if isinstance(Fn, Failure):
         return Fn
     inliers = np.zeros(len(a), bool) if mask is None else (np.asarray(mask).reshape(-1) != 0)
     n_in = int(inliers.sum())

@@ -9,7 +9,8 @@ Index ``-1`` and distance ``+inf`` mean "no such candidate".
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 INF = np.float32(np.inf)
 
@@ -51,6 +52,21 @@ def _l2sq(a, b):
         d = a[k] - b[k]
         s += d * d
     return s
+
+
+def desc_dist(a, b):  # pragma: no cover - replaced by the Numba overload below inside jitted code
+    """Descriptor distance: squared L2 for float rows, Hamming for uint64 word rows."""
+    raise NotImplementedError
+
+
+@overload(desc_dist)
+def _desc_dist_overload(a, b):
+    # resolved at compile time from the array dtype, so one cached kernel per descriptor kind
+    if isinstance(a, types.Array) and isinstance(a.dtype, types.Float):
+        return lambda a, b: _l2sq(a, b)
+    if isinstance(a, types.Array) and a.dtype == types.uint64:
+        return lambda a, b: _hamming(a, b)
+    return None
 
 
 # --------------------------------------------------------------------------- dense top-2
@@ -175,7 +191,7 @@ def _push(d, j, b1, j1, b2, j2):
 
 
 @njit(inline="always", cache=True)
-def _scan_cell(c, qd, desc2, pts2, lines_q, use_band, band, lo, hi, start, items, distfn, b1, j1, b2, j2, cnt):
+def _scan_cell(c, qd, desc2, pts2, lines_q, use_band, band, lo, hi, start, items, b1, j1, b2, j2, cnt):
     a = lines_q[0]
     b = lines_q[1]
     cc = lines_q[2]
@@ -186,7 +202,7 @@ def _scan_cell(c, qd, desc2, pts2, lines_q, use_band, band, lo, hi, start, items
             continue
         if use_band and abs(a * x + b * pts2[j, 1] + cc) > band:
             continue
-        d = distfn(qd, desc2[j])
+        d = desc_dist(qd, desc2[j])
         cnt += 1
         b1, j1, b2, j2 = _push(d, j, b1, j1, b2, j2)
     return b1, j1, b2, j2, cnt
@@ -194,7 +210,7 @@ def _scan_cell(c, qd, desc2, pts2, lines_q, use_band, band, lo, hi, start, items
 
 @njit(parallel=True, cache=True)
 def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
-                origin, cell, ncx, ncy, start, items, distfn):
+                origin, cell, ncx, ncy, start, items):
     """Best two candidates of each query among image-2 features in its search region.
 
     The region of query ``q`` is ``{j : xlo[q] <= pts2[j,0] <= xhi[q]}`` (spatial-order x-range) and, when
@@ -202,7 +218,7 @@ def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
     All coordinates are the (aligned) image-2 coordinates the grid was built on. Only grid cells the
     region can touch are visited: columns when the line is closer to horizontal, rows otherwise.
 
-    Returns ``(i1, d1, i2, d2, ncand)``; ``d`` are raw ``distfn`` values (squared L2 or Hamming) and
+    Returns ``(i1, d1, i2, d2, ncand)``; ``d`` are raw ``desc_dist`` values (squared L2 or Hamming) and
     ``ncand[q]`` is the exact number of descriptor distances evaluated for query ``q``.
     """
     nq = queries.shape[0]
@@ -238,7 +254,7 @@ def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
             for cx in range(cx_lo, cx_hi + 1):
                 for cy in range(ncy):
                     b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], False, band, lo, hi,
-                                                     start, items, distfn, b1, j1, b2, j2, cnt)
+                                                     start, items, b1, j1, b2, j2, cnt)
         elif abs(b) >= abs(a):
             # mostly horizontal line: walk columns, rows limited to the band around the line
             m = band / abs(b) + eps
@@ -255,7 +271,7 @@ def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
                 cy_hi = min(ncy - 1, int((ymax - gy0) // cell))
                 for cy in range(cy_lo, cy_hi + 1):
                     b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], True, band, lo, hi,
-                                                     start, items, distfn, b1, j1, b2, j2, cnt)
+                                                     start, items, b1, j1, b2, j2, cnt)
         else:
             # mostly vertical line: walk rows, columns limited to the band and the x-range
             m = band / abs(a) + eps
@@ -286,22 +302,10 @@ def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
                 c_hi = min(ncx - 1, int((xmax - gx0) // cell))
                 for cx in range(c_lo, c_hi + 1):
                     b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], True, band, lo, hi,
-                                                     start, items, distfn, b1, j1, b2, j2, cnt)
+                                                     start, items, b1, j1, b2, j2, cnt)
         i1[q] = j1
         i2[q] = j2
         d1[q] = b1
         d2[q] = b2
         ncand[q] = cnt
     return i1, d1, i2, d2, ncand
-
-
-@njit(inline="always", cache=True)
-def l2sq_dist(a, b):
-    """Squared L2 between two float32 vectors (Numba)."""
-    return _l2sq(a, b)
-
-
-@njit(inline="always", cache=True)
-def hamming_dist(a, b):
-    """Hamming distance between two uint64 word rows (Numba)."""
-    return _hamming(a, b)

@@ -232,7 +232,6 @@ class _Run:
         self.d1, self.d2, self.binary = d1, d2, binary
         self.kdesc1 = kernels.pack_bits_u64(d1) if binary else d1
         self.kdesc2 = kernels.pack_bits_u64(d2) if binary else d2
-        self.distfn = kernels.hamming_dist if binary else kernels.l2sq_dist
         self.fallbacks: list[dict] = []
         self.comparisons = 0
         self.ncand: list[np.ndarray] = []
@@ -331,7 +330,7 @@ class _Run:
         origin, ncx, ncy, start, items, cell = m.grid
         i1, s1, _i2, s2, nc = kernels.guided_top2(q, self.kdesc1, self.kdesc2, m.pts2a, lines[keep], m.F is not None,
                                                   float(self.c.band_px), lo[keep], hi[keep], origin, float(cell),
-                                                  int(ncx), int(ncy), start, items, self.distfn)
+                                                  int(ncx), int(ncy), start, items)
         self.comparisons += int(nc.sum())
         self.account(len(queries), int(nc.sum()))
         self.ncand.append(nc)

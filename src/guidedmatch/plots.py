@@ -97,3 +97,58 @@ def motion_field_panels(path, image1, panels: list[dict], ncols: int = 3, suptit
         fig.suptitle(suptitle, fontsize=11)
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def search_regions(path, image1, image2, f1, f2, result, models=None, num_samples: int = 4, seed: int = 0) -> Path:
+    """The paper's Fig. 1 for a few sample features: on image 2, the epipolar band (green), the
+    spatial-order x-range (red) and their intersection (yellow, the final search region), with the
+    candidates (cyan dots) and the accepted match (white cross). Left column: the feature in image 1.
+
+    ``models`` is the :class:`~guidedmatch.matcher.GuidanceModels` of the run (``match(..., return_models=True)``).
+    Regions are evaluated per pixel of image 2 through the alignment homography, so they are drawn in
+    original image-2 coordinates.
+    """
+    plt = _plt()
+    if models is None:
+        raise ValueError("search regions need the guidance models of a guided run (not available for mode 'bf')")
+    rng = np.random.default_rng(seed)
+    fin = np.asarray(models.final_queries)
+    matched = dict(zip(result.pairs[:, 0].tolist(), result.pairs[:, 1].tolist()))
+    pool = np.array([q for q in fin if q in matched]) if len(fin) else np.zeros(0, int)
+    if len(pool) == 0:
+        raise ValueError("no feature was matched in the guided final pass; nothing to illustrate")
+    xs = f1.keypoints[pool, 0]
+    # spread the samples over the image width
+    picks = [pool[np.argmin(np.abs(xs - q))] for q in np.quantile(xs, np.linspace(0.15, 0.85, num_samples))]
+    picks = list(dict.fromkeys(int(p) for p in picks))
+    h2, w2 = image2.shape[:2]
+    step = max(1, int(max(h2, w2) // 700))
+    gy, gx = np.mgrid[0:h2:step, 0:w2:step]
+    P = np.c_[gx.ravel(), gy.ravel(), np.ones(gx.size)] @ models.H2.T
+    Pa = P[:, :2] / P[:, 2:3]
+    keep, lo, hi, lines = models.regions(np.array(picks))
+    fig, axes = plt.subplots(len(picks), 2, figsize=(10, 3.6 * len(picks)), squeeze=False)
+    for r, q in enumerate(picks):
+        a0, a1 = axes[r]
+        a0.imshow(image1, cmap="gray", vmin=0, vmax=255)
+        a0.plot(*f1.keypoints[q], "o", ms=9, mfc="none", mec="yellow", mew=2)
+        a0.set_title(f"image 1: feature {q}", fontsize=9)
+        in_so = (Pa[:, 0] >= lo[r]) & (Pa[:, 0] <= hi[r]) if keep[r] else np.zeros(len(Pa), bool)
+        in_band = (np.abs(Pa @ lines[r, :2] + lines[r, 2]) <= models.band_px * max(1, step / 2)) if lines is not None \
+            else np.ones(len(Pa), bool)
+        overlay = np.zeros((*gx.shape, 4))
+        overlay[in_band.reshape(gx.shape)] = [0.0, 0.8, 0.0, 0.45]
+        overlay[in_so.reshape(gx.shape)] = [0.9, 0.0, 0.0, 0.25]
+        overlay[(in_so & in_band).reshape(gx.shape)] = [1.0, 0.9, 0.0, 0.9]
+        a1.imshow(image2, cmap="gray", vmin=0, vmax=255)
+        a1.imshow(overlay, extent=(0, w2, h2, 0), interpolation="nearest")
+        cand = models.candidates(q)
+        a1.scatter(f2.keypoints[cand, 0], f2.keypoints[cand, 1], s=6, c="cyan", linewidths=0)
+        j = matched[q]
+        a1.plot(*f2.keypoints[j], "x", ms=10, mec="white", mew=2)
+        a1.set_title(f"image 2: band (green), SO range (red), search region (yellow): {len(cand)} candidates", fontsize=9)
+        for ax in (a0, a1):
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    return save_figure(fig, path)
