@@ -153,7 +153,7 @@ def test_fused_gap_kernel_equals_dense_threshold(n, n_good, seed):
     cfg = SpatialOrderConfig(overlap="none")
     model = fit_spatial_order(sp.x1, sp.x2, cfg)
     assert model.usable and model.n_window == n
-    p = gap_probability_table(model.sigma_window, model.n_good, cfg)
+    p = gap_probability_table(model.sigma_window, model.n_good, cfg, model.order_noise)
     dense = p >= cfg.threshold
     mask = np.zeros_like(dense)
     for h in range(n + 1):
@@ -360,3 +360,19 @@ def test_k2d_and_exact_configs_fit():
     assert np.all(me.probabilities[~inside] == 0)
     mn = fit_spatial_order(sp.x1, sp.x2, SpatialOrderConfig(overlap="none"))
     assert mn.omega == (0, 120, 0, 120) and mn.n_window == 120
+
+
+def test_order_noise_widens_the_search_range_and_is_measured_on_likely_correct_matches():
+    """With local swaps among correct matches (A1 broken) the order-noise term must admit more gaps, and the
+    noise measured on a given correct mask must equal the inversions among exactly those matches."""
+    sp = generate_permutation(600, 400, overlap=(1.0, 1.0), n_swaps=150, swap_radius=6, seed=4)
+    off = fit_spatial_order(sp.x1, sp.x2, SpatialOrderConfig(overlap="none", order_noise=False))
+    on = fit_spatial_order(sp.x1, sp.x2, SpatialOrderConfig(overlap="none"), likely_correct=sp.is_good)
+    assert off.order_noise == (0.0, 0.0) and on.order_noise[0] > 0
+    assert on.gap_count.sum() > off.gap_count.sum()
+    # reference: O(N^2) inversions among the true correct matches only
+    g = np.flatnonzero(sp.is_good)
+    x1, x2 = sp.x1[g], sp.x2[g]
+    inv = ((x1[:, None] < x1[None, :]) & (x2[:, None] > x2[None, :])) | ((x1[:, None] > x1[None, :]) & (x2[:, None] < x2[None, :]))
+    hg = inv.sum(1)
+    np.testing.assert_allclose(on.order_noise, (hg.mean(), hg.var()), rtol=1e-9)

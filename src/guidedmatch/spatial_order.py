@@ -89,6 +89,7 @@ class SpatialOrderConfig:
     refine: bool = True  # refine omega*'s grid ends to single ranks (coordinate ascent on N_G; not in Talker)
     trim_rounds: int = 2  # re-window to extreme ranks of matches with P >= 1/2, keep max sum P (not in Talker)
     var_floor: float = 1.0  # added to Var(H | G) (inversions^2): tolerance for local order noise
+    order_noise: bool = True  # estimate local order noise from the data and widen P(H|G) by it (not in Talker; see fit)
     min_z: float = 5.0  # usable only if (1/2 - K_hat(omega*)) / sd_null >= min(min_z, 1.5 + 0.6 ln N) (see fit)
 
 
@@ -115,6 +116,7 @@ class SpatialOrderModel:
         sigma_window: ``(n_window,) int64`` the re-ranked sub-permutation inside omega*.
         probabilities: ``(n,) float64`` P(i in G | H) per given match, 0 outside omega*.
         config: the config used. timings: seconds per stage.
+        order_noise: ``(mean, var)`` of the inversions among likely-correct matches added to ``H | G``.
     """
 
     usable: bool
@@ -142,6 +144,7 @@ class SpatialOrderModel:
     probabilities: np.ndarray
     config: SpatialOrderConfig = field(default_factory=SpatialOrderConfig)
     timings: dict = field(default_factory=dict)
+    order_noise: tuple[float, float] = (0.0, 0.0)  # (mean, variance) of H_G added to H | G (see order_noise())
 
     def __bool__(self) -> bool:  # falsy when unusable, like guidedmatch.results.Failure
         return bool(self.usable)
@@ -712,7 +715,7 @@ def _exact_lik_good(left1, left2, h, n_others, n_bad, nsd):  # pragma: no cover 
 
 
 def probability_correct(left1, left2, h, n_others, n_good, n_total, *, method="gaussian", num_beta=5,
-                        var_floor=1.0, new_feature=False):
+                        var_floor=1.0, new_feature=False, mean_shift=0.0):
     """``P(G | H)`` for matches (or hypothetical matches in gaps) with given left counts and inversions.
 
     Args:
@@ -722,6 +725,7 @@ def probability_correct(left1, left2, h, n_others, n_good, n_total, *, method="g
         method: ``"gaussian"`` or ``"exact"`` (see module docstring).
         new_feature: gap of a new feature (others contain all N_G correct matches for both hypotheses) instead of
             an existing match (under G the others hold N_G - 1 correct ones, under B N_G).
+        mean_shift: added to the mean of ``H | G`` ("gaussian" only; the order noise of :func:`order_noise`).
     """
     left1 = np.asarray(left1, dtype=np.int64).reshape(-1)
     left2 = np.asarray(left2, dtype=np.int64).reshape(-1)
@@ -730,13 +734,15 @@ def probability_correct(left1, left2, h, n_others, n_good, n_total, *, method="g
     g_under_g = float(n_good) if new_feature else max(float(n_good) - 1.0, 0.0)
     g_under_b = min(float(n_good), float(n_others))
     if method == "exact":
+        if mean_shift:
+            raise ValueError("mean_shift (order noise) is only defined for the gaussian model")
         nb = int(np.clip(round(n_others - g_under_g), 0, n_others))
         lik = _exact_lik_good(left1, left2, h, int(n_others), nb, _EXACT_NSD)
         with np.errstate(divide="ignore"):
             loglik = np.log(lik)
     elif method == "gaussian":
         mu, var = good_inversion_moments(left1, left2, n_others, g_under_g, num_beta, var_floor)
-        loglik = _gauss_loglik(h, mu, var)
+        loglik = _gauss_loglik(h, mu + mean_shift, var)
     else:
         raise ValueError(f"unknown probability method {method!r}")
     return _posterior(loglik, h, left1, n_others, g_under_b, p_good)
@@ -767,23 +773,26 @@ def gap_inversion_table(sigma) -> tuple[np.ndarray, np.ndarray]:
     return hh - c, kk - c
 
 
-def gap_probability_table(sigma, n_good, config: SpatialOrderConfig = SpatialOrderConfig()) -> np.ndarray:
+def gap_probability_table(sigma, n_good, config: SpatialOrderConfig = SpatialOrderConfig(),
+                          noise: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """``(N+1, N+1)`` probability that a new feature in image-1 gap h matches correctly into image-2 gap k.
 
     Dense NumPy reference (O(N^2) memory) of what :func:`fit_spatial_order` thresholds; uses ``config.probability``
-    ("exact" is slow: O(|S_beta| H) per cell).
+    ("exact" is slow: O(|S_beta| H) per cell). ``noise = (mean, var)`` is the order noise added to ``H | G``
+    (``model.order_noise`` of a fitted model).
     """
     hl, hr = gap_inversion_table(sigma)
     n = len(sigma)
     hh, kk = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
     p = probability_correct(hh.ravel(), kk.ravel(), (hl + hr).ravel(), n, n_good, n, method=config.probability,
-                            num_beta=config.num_beta, var_floor=config.var_floor, new_feature=True)
+                            num_beta=config.num_beta, var_floor=config.var_floor + noise[1], new_feature=True,
+                            mean_shift=noise[0])
     return p.reshape(n + 1, n + 1)
 
 
 @njit(cache=True)
 def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th, var_floor,
-                log_out):  # pragma: no cover - numba
+                log_out, mean_shift):  # pragma: no cover - numba
     """Fused pass over the (n+1)^2 gap table: C by incremental prefix sums, Gaussian P(H|G), threshold, runs."""
     n = sigma.shape[0]
     crow = np.zeros(n + 1, dtype=np.int64)
@@ -809,7 +818,7 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
         for k in range(n + 1):
             hv = h + k - 2 * crow[k]
             if nb < 1e-9:
-                mu = 0.0
+                mu = mean_shift
                 var = var_floor
             else:
                 mu = m1[h] + m2[k] - 2.0 * m1[h] * m2[k] / nb
@@ -824,6 +833,7 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
                     if vh < 0.0:
                         vh = 0.0
                 var = vh + var_mu + var_floor
+                mu += mean_shift
             d = hv - mu
             q = d * d / (2.0 * var)
             ok = False
@@ -852,7 +862,7 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
     return gap_lo, gap_hi, count, ptr, runs[:nr].copy()
 
 
-def _build_gap_table(sigma_w, n_good, config):
+def _build_gap_table(sigma_w, n_good, config, noise=(0.0, 0.0)):
     n = len(sigma_w)
     nb = max(float(n) - float(n_good), 0.0)
     gaps = np.arange(n + 1, dtype=np.float64)
@@ -863,7 +873,7 @@ def _build_gap_table(sigma_w, n_good, config):
     th = float(np.clip(config.threshold, 1e-300, 1.0 - 1e-16))
     return _gap_kernel(np.ascontiguousarray(sigma_w, dtype=np.int64), m1, s1, m2, s2, blo, bhi, nb,
                        math.log(p_good), math.log(1.0 - p_good), math.log(th / (1.0 - th)),
-                       float(max(config.var_floor, 1e-9)), math.log(_OUT_OF_RANGE))
+                       float(max(config.var_floor + noise[1], 1e-9)), math.log(_OUT_OF_RANGE), float(noise[0]))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -910,13 +920,16 @@ def _window_fit(sigma, w, config, method):
 
 
 def fit_spatial_order(x1, x2, config: SpatialOrderConfig = SpatialOrderConfig(), *, y1=None,
-                      y2=None) -> SpatialOrderModel:
+                      y2=None, likely_correct=None) -> SpatialOrderModel:
     """Fit the spatial-order model to matched coordinates (Talker §4-§5; Teng & Dong §III-B, §III-C).
 
     Args:
         x1, x2: ``(N,)`` x (pixels) of match m in image 1 / image 2 (e.g. image-2 coordinates after alignment).
         config: :class:`SpatialOrderConfig`.
         y1, y2: optional ``(N,)`` y, used only to break x ties (then match index).
+        likely_correct: optional ``(N,) bool``, matches known to be (mostly) correct by other means, e.g. the
+            RANSAC inliers of F; when given, the order noise (:func:`order_noise`) is measured on them instead of on
+            the matches with ``P >= 1/2``.
 
     Returns:
         :class:`SpatialOrderModel`; ``usable=False`` with a reason (never an exception) when N < 2, coordinates are
@@ -1017,8 +1030,16 @@ def fit_spatial_order(x1, x2, config: SpatialOrderConfig = SpatialOrderConfig(),
     pos[sel_ranks] = np.arange(nw)
     m_in = np.nonzero(in_window)[0]
     probs[m_in] = prob_w[pos[r1[m_in]]]
+    noise = (0.0, 0.0)
+    if config.order_noise:
+        if likely_correct is not None and len(likely_correct) == n:
+            lc = np.zeros(nw)
+            lc[pos[r1[m_in]]] = np.asarray(likely_correct, bool)[m_in]
+            noise = order_noise(sigma_w, lc)
+        else:
+            noise = order_noise(sigma_w, prob_w)
     t3 = time.perf_counter()
-    gap_lo, gap_hi, count, ptr, runs = _build_gap_table(sigma_w, n_good, config)
+    gap_lo, gap_hi, count, ptr, runs = _build_gap_table(sigma_w, n_good, config, noise)
     t4 = time.perf_counter()
     timings.update({"probabilities": t3 - t2, "gap_table": t4 - t3, "total": t4 - t0})
     return SpatialOrderModel(
@@ -1030,7 +1051,30 @@ def fit_spatial_order(x1, x2, config: SpatialOrderConfig = SpatialOrderConfig(),
         gap_contiguous=(count == np.maximum(gap_hi - gap_lo + 1, 0)),
         gap_runs_ptr=ptr, gap_runs=runs, sigma=sigma, rank1=r1, rank2=r2, omega=(i1l, i1h, i2l, i2h),
         in_window=in_window, sigma_window=sigma_w, probabilities=probs, config=config, timings=timings,
+        order_noise=noise,
     )
+
+
+def order_noise(sigma_w, prob_w, min_matches: int = 8) -> tuple[float, float]:
+    """Local order noise of the likely-correct matches: mean and variance of their inversions among themselves.
+
+    Talker's A1 says correct matches never invert each other, so ``P(H|G)`` only counts inversions with incorrect
+    matches. Real pairs break A1 locally: depth discontinuities ("poles"), perspective, residual roll and
+    keypoint noise swap nearby correct matches. Among the matches with ``P >= 1/2`` (taken as correct) we count,
+    for each, the inversions it takes part in with the others (``H_G``); a correct *new* feature at its true gap
+    meets the same disorder, so the search-range table adds ``mean(H_G)`` to the mean of ``H | G`` and
+    ``var(H_G)`` to its variance (an addition to Teng & Dong §III-C; ``order_noise=False`` restores the paper).
+    The estimate is conservative on the low side: matches whose disorder already made ``P < 1/2`` are left out.
+    Returns ``(0, 0)`` with fewer than ``min_matches`` likely-correct matches.
+    """
+    good = np.asarray(prob_w) >= 0.5
+    if int(good.sum()) < min_matches:
+        return (0.0, 0.0)
+    sub = np.asarray(sigma_w)[good]
+    dense = np.argsort(np.argsort(sub, kind="stable"), kind="stable")
+    hl, hr = inversions_per_match(dense)
+    hg = (hl + hr).astype(np.float64)
+    return (float(hg.mean()), float(hg.var()))
 
 
 def admissible_x_ranges(model: SpatialOrderModel, xq) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
