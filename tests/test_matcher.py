@@ -110,7 +110,7 @@ def test_unusable_so_model_falls_back_and_reports(scene_and_features, monkeypatc
 
 def test_too_few_correspondences_reports_missing_updates(scene_and_features):
     _, f1, f2 = scene_and_features
-    r = match(f1, f2, "so+epi+ia", MatcherConfig(update_every=100000))
+    r = match(f1, f2, "so+epi+ia", MatcherConfig(update_every=100000, one_to_one=False))
     assert r.stats["num_model_updates"] == 0
     assert any(f["what"] == "updates" for f in r.stats["fallbacks"])
     b = match(f1, f2, "bf")

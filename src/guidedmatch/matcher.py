@@ -36,8 +36,10 @@ Ratio test inside the candidate set: with >= 2 candidates, keep when ``d1 < rati
 candidate there is no second neighbour and ``single_candidate`` decides ("reject", the default: drop it, since
 nothing vouches for it -- on the demo scene this keeps the same true matches at +1.6 points precision; "accept":
 keep it, flagged in ``flags["single_candidate"]``); with 0 candidates the feature is unmatched.
-``mutual=True`` in guided modes keeps, for every image-2 feature, only the closest of the image-1
-features matched to it (a full reverse search would cost N1·N2).
+``one_to_one`` (default on; ``mutual=True`` does the same in guided modes) keeps, for every image-2 feature, only
+the closest of the image-1 features matched to it -- the cheap half of a mutual check (a full reverse search would
+cost N1·N2). A small candidate set makes the ratio test easier to pass than in brute force, so this filter is what
+brings guided precision back above brute force's (Oxford, 12 pairs, SIFT: 88.9 % -> 94.2 %, BF 93.8 %).
 """
 from __future__ import annotations
 
@@ -63,10 +65,13 @@ class MatcherConfig:
     num_updates: int = 3                 # model updates before the final vectorized pass (§IV: 3)
     so_threshold: float = 0.01           # Th: keep image-2 gaps whose correctness probability >= Th (§III-C, §IV)
     band_px: float = 5.0                 # epipolar band half-width in (aligned) image-2 pixels (§IV: 5 px)
-    alignment: str = "c"                 # alignment approach a|b|c|d (§III-E; c = K2 R_u R^T K2^-1, the paper's choice)
+    alignment: str = "c"                 # alignment a|b|c|c_inplane|d (§III-E; c = K2 R_u R^T K2^-1 as printed, the paper's
+                                         # choice; c_inplane = the in-plane twist the text describes, docs/alignment.md)
     ratio: float | None = 0.8            # Lowe ratio inside the candidate set; None disables
     single_candidate: str = "reject"     # a feature with exactly one candidate: "reject" (no ratio test possible) or "accept"
-    mutual: bool = False                 # bf: mutual NN; guided: one image-1 feature per image-2 feature
+    mutual: bool = False                 # bf: mutual nearest neighbours (full reverse search); guided: same as one_to_one
+    one_to_one: bool = True              # guided modes: keep only the closest image-1 feature per image-2 feature (beyond
+                                         # the paper; Oxford, 12 pairs: precision 88.9 % -> 94.2 %, true -2.5 %)
     max_distance: float | None = None    # drop matches with a larger descriptor distance (L2 or Hamming bits)
     ransac_method: str = "magsac"        # F estimator (OpenCV USAC): magsac|accurate|default|prosac|ransac|lmeds
     ransac_threshold: float = 1.5        # RANSAC inlier threshold for F, pixels
@@ -83,8 +88,8 @@ class MatcherConfig:
 
     @classmethod
     def paper(cls, **overrides) -> "MatcherConfig":
-        """The paper's configuration (no re-check, drop features outside ω*), for reproducing its tables."""
-        return cls(**{"recheck": False, "outside_window": "drop", **overrides})
+        """The paper's configuration (no re-check, no one-to-one filter, drop features outside ω*)."""
+        return cls(**{"recheck": False, "outside_window": "drop", "one_to_one": False, **overrides})
 
     def replace(self, **changes) -> "MatcherConfig":
         return dataclasses.replace(self, **changes)
@@ -171,8 +176,10 @@ class GuidedMatcher:
     def __init__(self, config: MatcherConfig | None = None):
         self.config = config or MatcherConfig()
         c = self.config
-        if c.alignment not in ("a", "b", "c", "d"):
-            raise ValueError(f"alignment must be one of a, b, c, d; got {c.alignment!r}")
+        from .alignment import APPROACHES
+
+        if c.alignment not in APPROACHES:
+            raise ValueError(f"alignment must be one of {', '.join(APPROACHES)}; got {c.alignment!r}")
         if c.outside_window not in ("drop", "band"):
             raise ValueError(f"outside_window must be 'drop' or 'band'; got {c.outside_window!r}")
         if c.single_candidate not in ("accept", "reject"):
@@ -493,8 +500,8 @@ class _Run:
             flags = {k: v[sel] for k, v in flags.items()}
         self.timing["recheck_s"] = time.perf_counter() - t0
         flags["in_band"] = in_band
-        # -- one image-1 feature per image-2 feature when mutual is requested
-        if c.mutual and len(q):
+        # -- one image-1 feature per image-2 feature (one_to_one, or mutual in a guided mode)
+        if (c.one_to_one or c.mutual) and len(q):
             o = np.lexsort((q, d, j))
             first = np.r_[True, np.diff(j[o]) != 0]
             sel = np.sort(o[first])

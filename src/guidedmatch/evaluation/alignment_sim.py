@@ -230,7 +230,11 @@ def run_alignment_experiment(n_pairs: int = 3000, out_dir: Path = Path("out/alig
             rows.extend(_run_chunk(c))
             bar.update(len(c))
     else:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
+        # "spawn", not fork: a fork after Numba/OpenCV/BLAS thread pools have started (e.g. inside
+        # `guidedmatch bench all`) can deadlock the children
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
             for res in ex.map(_run_chunk, chunks):
                 rows.extend(res)
                 bar.update(len(res))
