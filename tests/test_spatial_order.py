@@ -376,3 +376,13 @@ def test_order_noise_widens_the_search_range_and_is_measured_on_likely_correct_m
     inv = ((x1[:, None] < x1[None, :]) & (x2[:, None] > x2[None, :])) | ((x1[:, None] > x1[None, :]) & (x2[:, None] < x2[None, :]))
     hg = inv.sum(1)
     np.testing.assert_allclose(on.order_noise, (hg.mean(), hg.var()), rtol=1e-9)
+
+
+def test_model_without_gap_table_has_same_probabilities_and_refuses_lookups():
+    sp = generate_permutation(300, 200, seed=8)
+    full = fit_spatial_order(sp.x1, sp.x2)
+    lite = fit_spatial_order(sp.x1, sp.x2, SpatialOrderConfig(gap_table=False))
+    np.testing.assert_array_equal(full.probabilities, lite.probabilities)
+    np.testing.assert_array_equal(match_probabilities(sp.x1, sp.x2), full.probabilities)
+    with pytest.raises(ValueError, match="gap_table=False"):
+        admissible_x_ranges(lite, sp.x1[:5])

@@ -57,13 +57,18 @@ def block_rows(n2: int, memory_budget_mb: float = DEFAULT_MEMORY_BUDGET_MB) -> i
 
 
 def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_MEMORY_BUDGET_MB,
-         want_column_best: bool = False):
+         want_column_best: bool = False, d2_sqnorms: np.ndarray | None = None, checked: bool = False):
     """Exact 2-NN of each ``d1`` row among ``d2`` rows.
 
     Returns ``(i1, dist1, i2, dist2)`` arrays of length N1 (index -1 / distance inf when missing) and,
     when ``want_column_best``, ``(col_i, col_d)``: for each ``d2`` row its nearest ``d1`` row.
+    ``d2_sqnorms`` (float descriptors: ``(N2,)`` squared norms of ``d2``) and ``checked=True`` (inputs already
+    validated by :func:`check_descriptors`) let a caller that queries the same ``d2`` repeatedly skip that work.
     """
-    d1, d2, binary = check_descriptors(d1, d2)
+    if checked:
+        binary = d1.dtype == np.uint8
+    else:
+        d1, d2, binary = check_descriptors(d1, d2)
     n1, n2 = len(d1), len(d2)
     if binary:
         q, t = kernels.pack_bits_u64(d1), kernels.pack_bits_u64(d2)
@@ -77,7 +82,7 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     col_i = np.full(n2, -1, np.int64)
     col_s = np.full(n2, np.inf, np.float32)
     if n1 and n2:
-        nn2 = np.einsum("ij,ij->i", d2, d2)
+        nn2 = np.einsum("ij,ij->i", d2, d2) if d2_sqnorms is None else d2_sqnorms
         rows = block_rows(n2, memory_budget_mb)
         buf = np.empty((min(rows, n1), n2), np.float32)
         for a in range(0, n1, rows):

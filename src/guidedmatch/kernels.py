@@ -45,7 +45,7 @@ def _hamming(a, b):
     return np.float32(s)
 
 
-@njit(inline="always", cache=True)
+@njit(inline="always", cache=True, fastmath=True)
 def _l2sq(a, b):
     s = np.float32(0.0)
     for k in range(a.shape[0]):
@@ -54,8 +54,29 @@ def _l2sq(a, b):
     return s
 
 
+@njit(inline="always", cache=True)
+def _l2sq_u8(a, b):
+    # exact squared L2 of byte-valued descriptors (e.g. SIFT, integers 0..255): int32 accumulation
+    s = np.int32(0)
+    for k in range(a.shape[0]):
+        d = np.int32(a[k]) - np.int32(b[k])
+        s += d * d
+    return np.float32(s)
+
+
+def as_exact_uint8(desc: np.ndarray) -> np.ndarray | None:
+    """``desc`` as uint8 when every value is an integer in 0..255 (OpenCV SIFT), else None.
+
+    Squared L2 of such descriptors is computed exactly in int32 on a quarter of the memory traffic.
+    """
+    if desc.dtype != np.float32 or desc.size == 0:
+        return None
+    u = desc.astype(np.uint8)
+    return u if np.array_equal(u, desc) else None
+
+
 def desc_dist(a, b):  # pragma: no cover - replaced by the Numba overload below inside jitted code
-    """Descriptor distance: squared L2 for float rows, Hamming for uint64 word rows."""
+    """Descriptor distance: squared L2 for float or byte-valued rows, Hamming for uint64 word rows."""
     raise NotImplementedError
 
 
@@ -66,6 +87,8 @@ def _desc_dist_overload(a, b):
         return lambda a, b: _l2sq(a, b)
     if isinstance(a, types.Array) and a.dtype == types.uint64:
         return lambda a, b: _hamming(a, b)
+    if isinstance(a, types.Array) and a.dtype == types.uint8:
+        return lambda a, b: _l2sq_u8(a, b)
     return None
 
 
@@ -192,28 +215,29 @@ def _push(d, j, b1, j1, b2, j2):
 
 @njit(inline="always", cache=True)
 def _scan_cell(c, qd, desc2, pts2, lines_q, use_band, band, lo, hi, start, items, b1, j1, b2, j2, cnt):
+    # desc2 / pts2 are stored in cell order (row p belongs to feature items[p]) so a cell is contiguous in memory
     a = lines_q[0]
     b = lines_q[1]
     cc = lines_q[2]
     for p in range(start[c], start[c + 1]):
-        j = items[p]
-        x = pts2[j, 0]
+        x = pts2[p, 0]
         if x < lo or x > hi:
             continue
-        if use_band and abs(a * x + b * pts2[j, 1] + cc) > band:
+        if use_band and abs(a * x + b * pts2[p, 1] + cc) > band:
             continue
-        d = desc_dist(qd, desc2[j])
+        j = items[p]
+        d = desc_dist(qd, desc2[p])
         cnt += 1
         b1, j1, b2, j2 = _push(d, j, b1, j1, b2, j2)
     return b1, j1, b2, j2, cnt
 
 
-@njit(parallel=True, cache=True)
 def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
                 origin, cell, ncx, ncy, start, items):
     """Best two candidates of each query among image-2 features in its search region.
 
-    The region of query ``q`` is ``{j : xlo[q] <= pts2[j,0] <= xhi[q]}`` (spatial-order x-range) and, when
+    ``desc2`` and ``pts2`` must be in cell order (``desc2[p]`` is feature ``items[p]``, see :func:`build_grid`);
+    returned indices are original feature indices. The region of query ``q`` is ``{j : xlo[q] <= pts2[j,0] <= xhi[q]}`` (spatial-order x-range) and, when
     ``use_band``, ``|lines[q] . (pts2[j], 1)| <= band`` (epipolar band; lines normalized so a^2+b^2=1).
     All coordinates are the (aligned) image-2 coordinates the grid was built on. Only grid cells the
     region can touch are visited: columns when the line is closer to horizontal, rows otherwise.
@@ -309,3 +333,19 @@ def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
         d2[q] = b2
         ncand[q] = cnt
     return i1, d1, i2, d2, ncand
+
+
+def _renamed(fn, name):
+    import types as _pytypes
+
+    code = fn.__code__.replace(co_name=name, co_qualname=name)
+    return _pytypes.FunctionType(code, fn.__globals__, name, fn.__defaults__, fn.__closure__)
+
+
+_FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
+_guided_py = guided_top2
+#: parallel over queries (final pass)
+guided_top2 = njit(parallel=True, cache=True, fastmath=_FASTMATH)(_guided_py)
+#: the same kernel single-threaded, for small batches: waking a thread pool per 64-query batch between BLAS
+#: calls costs more than it saves on 2 cores (the BLAS and Numba pools contend)
+guided_top2_serial = njit(parallel=False, cache=True, fastmath=_FASTMATH)(_renamed(_guided_py, "guided_top2_serial"))

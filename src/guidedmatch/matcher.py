@@ -106,6 +106,8 @@ class _Models:
     pts1a: np.ndarray | None = None           # aligned image-1 keypoints (N1, 2)
     pts2a: np.ndarray | None = None           # aligned image-2 keypoints (N2, 2)
     grid: tuple | None = None
+    desc2_cells: np.ndarray | None = None     # image-2 descriptors permuted into grid-cell order
+    pts2_cells: np.ndarray | None = None      # aligned image-2 keypoints in grid-cell order
     info: dict = field(default_factory=dict)
 
     @property
@@ -245,14 +247,21 @@ class _Run:
         self.d1, self.d2, self.binary = d1, d2, binary
         self.kdesc1 = kernels.pack_bits_u64(d1) if binary else d1
         self.kdesc2 = kernels.pack_bits_u64(d2) if binary else d2
+        self.byte_exact = False
+        if not binary:  # byte-valued float descriptors (OpenCV SIFT): exact int32 L2 on uint8 copies in the kernel
+            u1, u2 = kernels.as_exact_uint8(d1), kernels.as_exact_uint8(d2)
+            if u1 is not None and u2 is not None:
+                self.kdesc1, self.kdesc2, self.byte_exact = u1, u2, True
         self.fallbacks: list[dict] = []
         self.comparisons = 0
         self.ncand: list[np.ndarray] = []
-        self.timing = dict(initial_bf_s=0.0, model_fit_s=0.0, guided_progressive_s=0.0, final_pass_s=0.0, recheck_s=0.0)
+        self.timing = dict(initial_bf_s=0.0, model_fit_s=0.0, guided_progressive_s=0.0, final_pass_s=0.0, recheck_s=0.0,
+                           so_prob_s=0.0)
         self.updates: list[dict] = []
         self.dropped_outside_overlap = 0
         self.no_region = 0
         self.band_only = 0
+        self.d2_sqnorms = None
         self.phase_queries: dict[int, int] = {}
         self.phase_comparisons: dict[int, int] = {}
         self.guidance: GuidanceModels | None = None
@@ -300,7 +309,9 @@ class _Run:
         return queries[keep], i1[keep], dist1[keep].astype(np.float32), single[keep]
 
     def bf_batch(self, queries):
-        (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2)
+        if self.d2_sqnorms is None and not self.binary:
+            self.d2_sqnorms = np.einsum("ij,ij->i", self.d2, self.d2)
+        (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
         n2 = len(self.d2)
         self.comparisons += len(queries) * n2
         self.account(len(queries), len(queries) * n2)
@@ -347,10 +358,17 @@ class _Run:
         keep, lo, hi, lines, _ = self.regions(m, queries)
         self.dropped_outside_overlap += int((~keep).sum())
         q = queries[keep]
+        lines, lo, hi = lines[keep], lo[keep], hi[keep]
+        # process queries in image-1 position order: neighbours share candidate cells, which stay in cache
+        o = np.lexsort((m.pts1a[q, 1], m.pts1a[q, 0]))
         origin, ncx, ncy, start, items, cell = m.grid
-        i1, s1, _i2, s2, nc = kernels.guided_top2(q, self.kdesc1, self.kdesc2, m.pts2a, lines[keep], m.F is not None,
-                                                  float(self.c.band_px), lo[keep], hi[keep], origin, float(cell),
-                                                  int(ncx), int(ncy), start, items)
+        kernel = kernels.guided_top2 if len(q) >= 2048 else kernels.guided_top2_serial
+        i1, s1, _i2, s2, nc = kernel(q[o], self.kdesc1, m.desc2_cells, m.pts2_cells, lines[o],
+                                                  m.F is not None, float(self.c.band_px), lo[o], hi[o], origin,
+                                                  float(cell), int(ncx), int(ncy), start, items)
+        inv = np.empty_like(o)
+        inv[o] = np.arange(len(o))
+        i1, s1, s2, nc = i1[inv], s1[inv], s2[inv], nc[inv]
         self.comparisons += int(nc.sum())
         self.account(len(queries), int(nc.sum()))
         self.ncand.append(nc)
@@ -422,6 +440,9 @@ class _Run:
                               + ("epipolar band only" if m.F is not None else "unguided"))
         cell = float(c.cell_px or max(4.0 * c.band_px, 16.0))
         m.grid = (*kernels.build_grid(m.pts2a, cell), cell)
+        items = m.grid[4]
+        m.desc2_cells = np.ascontiguousarray(self.kdesc2[items])  # descriptors in cell order (contiguous cells)
+        m.pts2_cells = np.ascontiguousarray(m.pts2a[items])
         m.info = info
         if m.H2 is not None and not np.allclose(m.H2, np.eye(3)):
             info["alignment_scale"] = _local_scale_range(m.H2, k2)
@@ -511,22 +532,28 @@ class _Run:
         q, j, d = q[o], j[o], d[o]
         flags = {k: v[o] for k, v in flags.items()}
         # -- per-match spatial-order probability within the final match set (Talker Eq. 12)
+        t0 = time.perf_counter()
         if self.use_so and len(q) >= 2:
             try:
                 from .spatial_order import match_probabilities
 
                 pa1 = models.pts1a if models.pts1a is not None else self.f1.keypoints
                 pa2 = models.pts2a if models.pts2a is not None else self.f2.keypoints
-                flags["so_prob"] = np.asarray(match_probabilities(pa1[q, 0], pa2[j, 0]), np.float32)
+                # probability of each final match within the final match set (Talker Eq. 12); the matches already lie
+                # inside the model's overlap window, so no new window search (overlap="none"), no gap table
+                from .spatial_order import SpatialOrderConfig
+
+                flags["so_prob"] = np.asarray(match_probabilities(pa1[q, 0], pa2[j, 0], SpatialOrderConfig(overlap="none")), np.float32)
             except Exception as exc:  # reported, not hidden
                 self.fallback("so_prob", f"per-match probabilities not computed: {exc}")
+        self.timing["so_prob_s"] = time.perf_counter() - t0
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         nc = np.concatenate(self.ncand) if self.ncand else np.zeros(0, np.int64)
         last = self.updates[-1] if self.updates else {}
         stats = dict(
             method=self.mode, mode=self.mode, comparisons=int(self.comparisons), num_features=(n1, n2),
             bf_comparisons=int(n1) * int(n2), comparison_ratio=self.comparisons / max(1, n1 * n2),
-            metric="hamming" if self.binary else "l2", time_s=time.perf_counter() - t_start, timing=self.timing,
+            metric="hamming" if self.binary else "l2", byte_exact_kernel=self.byte_exact, time_s=time.perf_counter() - t_start, timing=self.timing,
             num_model_updates=len(self.updates), updates=self.updates, candidates_per_query=_percentiles(nc),
             queries_matched_against=int(len(nc)), dropped_outside_overlap=self.dropped_outside_overlap,
             queries_without_candidates=self.no_region, dropped_by_recheck=dropped_recheck,

@@ -89,6 +89,7 @@ class SpatialOrderConfig:
     refine: bool = True  # refine omega*'s grid ends to single ranks (coordinate ascent on N_G; not in Talker)
     trim_rounds: int = 2  # re-window to extreme ranks of matches with P >= 1/2, keep max sum P (not in Talker)
     var_floor: float = 1.0  # added to Var(H | G) (inversions^2): tolerance for local order noise
+    gap_table: bool = True  # build the (n+1)^2 search-range table (False: per-match probabilities only, O(n log n))
     order_noise: bool = True  # estimate local order noise from the data and widen P(H|G) by it (not in Talker; see fit)
     min_z: float = 5.0  # usable only if (1/2 - K_hat(omega*)) / sd_null >= min(min_z, 1.5 + 0.6 ln N) (see fit)
 
@@ -1039,7 +1040,11 @@ def fit_spatial_order(x1, x2, config: SpatialOrderConfig = SpatialOrderConfig(),
         else:
             noise = order_noise(sigma_w, prob_w)
     t3 = time.perf_counter()
-    gap_lo, gap_hi, count, ptr, runs = _build_gap_table(sigma_w, n_good, config, noise)
+    if config.gap_table:
+        gap_lo, gap_hi, count, ptr, runs = _build_gap_table(sigma_w, n_good, config, noise)
+    else:  # no table: lookups refuse (see admissible_x_ranges)
+        gap_lo = gap_hi = count = ptr = np.zeros(0, np.int64)
+        runs = np.zeros((0, 2), np.int64)
     t4 = time.perf_counter()
     timings.update({"probabilities": t3 - t2, "gap_table": t4 - t3, "total": t4 - t0})
     return SpatialOrderModel(
@@ -1096,6 +1101,8 @@ def admissible_x_ranges(model: SpatialOrderModel, xq) -> tuple[np.ndarray, np.nd
     m = len(xq)
     if not model.usable:
         return (np.ones(m, dtype=bool), np.full(m, -np.inf), np.full(m, np.inf), np.ones(m, dtype=bool))
+    if len(model.gap_lo) != model.n_window + 1:
+        raise ValueError("this model was fitted with gap_table=False: it has no search-range table")
     h = np.searchsorted(model.x1_sorted, xq, side="left")
     glo = model.gap_lo[h]
     ghi = model.gap_hi[h]
@@ -1124,7 +1131,10 @@ def match_probabilities(x1, x2, model_or_config=None) -> np.ndarray:
         if model.n != len(x1):
             raise ValueError(f"model was fitted on {model.n} matches, got {len(x1)}")
     else:
-        model = fit_spatial_order(x1, x2, model_or_config or SpatialOrderConfig())
+        import dataclasses
+
+        cfg = dataclasses.replace(model_or_config or SpatialOrderConfig(), gap_table=False)  # table not needed here
+        model = fit_spatial_order(x1, x2, cfg)
     if not model.usable:
         return np.zeros(len(x1))
     return model.probabilities.copy()
