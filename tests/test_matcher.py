@@ -157,3 +157,18 @@ def test_invalid_config():
         GuidedMatcher(MatcherConfig(ratio=1.5))
     with pytest.raises(ValueError, match="unknown mode"):
         match(_feats(5), _feats(5), "fast")
+
+
+def test_byte_exact_kernel_equals_float_kernel(scene_and_features, monkeypatch):
+    """SIFT descriptors are integers 0..255: the uint8/int32 kernel must give the same matches as float32."""
+    import guidedmatch.kernels as K
+
+    _, f1, f2 = scene_and_features
+    a = match(f1, f2, "so+epi+ia", FAST)
+    assert a.stats["byte_exact_kernel"]
+    monkeypatch.setattr(K, "as_exact_uint8", lambda d: None)
+    b = match(f1, f2, "so+epi+ia", FAST)
+    assert not b.stats["byte_exact_kernel"]
+    np.testing.assert_array_equal(a.pairs, b.pairs)
+    np.testing.assert_allclose(a.distances, b.distances, rtol=1e-6)
+    assert a.stats["comparisons"] == b.stats["comparisons"]
