@@ -73,3 +73,32 @@ def test_demo_small(tmp_path, capsys):
     assert (tmp_path / "demo_matches.png").stat().st_size > 10_000
     res = json.loads((tmp_path / "demo_results.json").read_text())
     assert res["rows"][0]["mode"] == "bf" and res["rows"][0]["true"] > 0
+
+
+def test_guided_mode_with_config_plot_and_regions(image_files, tmp_path, capsys):
+    a, b = str(image_files / "a.png"), str(image_files / "b.png")
+    rc = main(["match", a, b, "--mode", "so+epi+ia", "--config", "update_every=60", "--config", "num_updates=2",
+               "--plot", str(tmp_path / "regions.png"), "--show-regions", "-o", str(tmp_path / "m.npz")])
+    assert rc == 0, capsys.readouterr().err
+    assert (tmp_path / "regions.png").stat().st_size > 10_000
+    d = read_matches(tmp_path / "m.npz")
+    assert d["stats"]["mode"] == "so+epi+ia" and d["stats"]["num_model_updates"] == 2
+    assert main(["match", a, b, "--mode", "epi", "--config", "update_every=60", "--plot", str(tmp_path / "mf.png")]) == 0
+    assert (tmp_path / "mf.png").exists()
+
+
+def test_bad_config_key_and_regions_without_model(image_files, tmp_path, capsys):
+    a, b = str(image_files / "a.png"), str(image_files / "b.png")
+    assert main(["match", a, b, "--config", "no_such_key=1"]) == 2
+    err = capsys.readouterr().err
+    assert "bad --config" in err and "band_px" in err and "Traceback" not in err
+    assert main(["match", a, b, "--mode", "bf", "--plot", str(tmp_path / "r.png"), "--show-regions"]) == 2
+    assert "needs a guided mode" in capsys.readouterr().err
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_experiment_alignment_small(tmp_path, capsys):
+    rc = main(["experiment", "alignment", "--pairs", "40", "--out", str(tmp_path)])
+    assert rc == 0
+    assert (tmp_path / "alignment_ratio.png").exists() and (tmp_path / "alignment_samples.csv").exists()
+    assert "| " in capsys.readouterr().out  # the Markdown table is printed

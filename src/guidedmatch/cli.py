@@ -135,6 +135,13 @@ def _detect_both(img1, img2, detector, max_features, options):
 def cmd_match(args) -> int:
     from .features import load_image
 
+    if args.show_regions and not args.plot:
+        raise CLIError("--show-regions needs --plot OUT.png")
+    if args.show_regions and args.mode == "bf":
+        raise CLIError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
+    if args.output and Path(args.output).suffix.lower() not in (".npz", ".csv", ".json"):
+        raise CLIError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
+
     img1 = load_image(args.img1)
     img2 = load_image(args.img2)
     t0 = time.perf_counter()
