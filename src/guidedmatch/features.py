@@ -160,6 +160,15 @@ class Features:
             return cls(z["keypoints"], z["descriptors"], tuple(int(v) for v in z["image_size"]), str(z["kind"]), **extra)
 
 
+def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Give a finished temp file normal permissions (0666 minus the umask; mkstemp makes 0600) and rename it
+    over ``path`` in one step (``os.replace``), so readers never see a partial file."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, path)
+
+
 def atomic_savez(path: str | os.PathLike, **arrays: Any) -> None:
     """``np.savez_compressed`` to a temp file in the target folder, then ``os.replace`` (no partial files)."""
     path = Path(path)
@@ -168,7 +177,7 @@ def atomic_savez(path: str | os.PathLike, **arrays: Any) -> None:
     os.close(fd)
     try:
         np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -183,7 +192,7 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -29,7 +29,9 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
     os.close(fd)
     try:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-        os.replace(tmp, path)
+        from .features import publish
+
+        publish(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

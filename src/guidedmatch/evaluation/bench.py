@@ -168,7 +168,7 @@ def run_oxford(root, out, quick, repeats, detector, peers):
         seq = p.name.split("/")[1]
         row = evaluate_pair(p, f1, f2, repeats=repeats, peers=peers, rotated=seq in ("boat", "graf", "bark"))
         rows.append(row)
-        if p.name in ("oxford/boat/1-3", "oxford/graf/1-3", "oxford/boat/1-2", "oxford/graf/1-2") and len(figs) < 2:
+        if p.name in ("oxford/boat/1-3", "oxford/graf/1-3") or (quick and p.name in ("oxford/boat/1-3", "oxford/graf/1-2")):
             H = row["methods"]["so+epi+ia"].get("alignment_H2")
             if H is not None:
                 figs.append(_aligned_figure(out / f"aligned_{seq}_{p.name[-3:]}.png", i1, i2, np.array(H), p.name))

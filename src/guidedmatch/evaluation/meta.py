@@ -81,7 +81,9 @@ def write_json(path, obj) -> Path:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             json.dump(obj, fh, default=_default, indent=1, allow_nan=True)
-        os.replace(tmp, path)
+        from ..features import publish
+
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
