@@ -39,48 +39,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_metadata() -> dict:
-    try:  # the shared helper, once it exists
-        from guidedmatch.evaluation.meta import run_metadata as rm  # type: ignore
+    from guidedmatch.evaluation.meta import run_metadata as rm
 
-        return rm()
-    except Exception:  # noqa: BLE001 - fall back to our own
-        pass
-    import numba
-    import scipy
-
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                                timeout=10).stdout.strip() or None
-    except Exception:  # noqa: BLE001
-        commit = None
-    cpu = None
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        import cv2
-
-        cv2_version = cv2.__version__
-    except Exception:  # noqa: BLE001
-        cv2_version = None
-    return {
-        "git_commit": commit,
-        "python": sys.version.split()[0],
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "numba": numba.__version__,
-        "cv2": cv2_version,
-        "platform": platform.platform(),
-        "cpu_model": cpu,
-        "cpu_count": os.cpu_count(),
-        "numba_threads": numba.get_num_threads(),
-        "thread_env": {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")},
-        "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
+    return rm()
 
 
 def first_call_times() -> dict:

@@ -3,4 +3,6 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from .results import Failure, MatchResult  # noqa: F401
+from .results import Failure, MatchResult
+
+__all__ = ["Failure", "MatchResult", "__version__"]

@@ -40,24 +40,10 @@ def _parse_kv(items: list[str] | None, what: str) -> dict:
     return out
 
 
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, (np.bool_,)):
-        return bool(o)
-    if dataclasses.is_dataclass(o):
-        return dataclasses.asdict(o)
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
-
-
 def to_json(obj, **kw) -> str:
-    return json.dumps(obj, default=_json_default, **kw)
+    from .evaluation.meta import json_default
+
+    return json.dumps(obj, default=json_default, **kw)
 
 
 def write_matches(path: Path, result, f1, f2) -> None:

@@ -92,6 +92,16 @@ def _desc_dist_overload(a, b):
     return None
 
 
+@njit(inline="always", cache=True)
+def _push(d, j, b1, j1, b2, j2):
+    # top-2 update; equal distances prefer the lower index (deterministic, like argmin)
+    if d < b1 or (d == b1 and j < j1):
+        return d, j, b1, j1
+    if d < b2 or (d == b2 and j < j2):
+        return b1, j1, d, j
+    return b1, j1, b2, j2
+
+
 # --------------------------------------------------------------------------- dense top-2
 @njit(parallel=True, cache=True)
 def top2_rows(dist_sq):
@@ -111,16 +121,7 @@ def top2_rows(dist_sq):
         j2 = -1
         row = dist_sq[i]
         for j in range(c):
-            v = row[j]
-            if v < b2:
-                if v < b1:
-                    b2 = b1
-                    j2 = j1
-                    b1 = v
-                    j1 = j
-                else:
-                    b2 = v
-                    j2 = j
+            b1, j1, b2, j2 = _push(row[j], j, b1, j1, b2, j2)
         i1[i] = j1
         i2[i] = j2
         d1[i] = b1
@@ -143,16 +144,7 @@ def hamming_top2(q, t):
         j1 = -1
         j2 = -1
         for j in range(n2):
-            v = _hamming(q[i], t[j])
-            if v < b2:
-                if v < b1:
-                    b2 = b1
-                    j2 = j1
-                    b1 = v
-                    j1 = j
-                else:
-                    b2 = v
-                    j2 = j
+            b1, j1, b2, j2 = _push(_hamming(q[i], t[j]), j, b1, j1, b2, j2)
         i1[i] = j1
         i2[i] = j2
         d1[i] = b1
@@ -201,16 +193,6 @@ def build_grid(pts: np.ndarray, cell: float):
     start = np.zeros(ncx * ncy + 1, np.int64)
     np.cumsum(np.bincount(cid, minlength=ncx * ncy), out=start[1:])
     return origin, ncx, ncy, start, items
-
-
-@njit(inline="always", cache=True)
-def _push(d, j, b1, j1, b2, j2):
-    # top-2 update; equal distances prefer the lower index (deterministic, like argmin)
-    if d < b1 or (d == b1 and j < j1):
-        return d, j, b1, j1
-    if d < b2 or (d == b2 and j < j2):
-        return b1, j1, d, j
-    return b1, j1, b2, j2
 
 
 @njit(inline="always", cache=True)

@@ -101,7 +101,7 @@ def motion_field_panels(path, image1, panels: list[dict], ncols: int = 3, suptit
     return save_figure(fig, path)
 
 
-def search_regions(path, image1, image2, f1, f2, result, models=None, num_samples: int = 4, seed: int = 0) -> Path:
+def search_regions(path, image1, image2, f1, f2, result, models=None, num_samples: int = 4) -> Path:
     """The paper's Fig. 1 for a few sample features: on image 2, the epipolar band (green), the
     spatial-order x-range (red) and their intersection (yellow, the final search region), with the
     candidates (cyan dots) and the accepted match (white cross). Left column: the feature in image 1.
@@ -113,7 +113,6 @@ def search_regions(path, image1, image2, f1, f2, result, models=None, num_sample
     plt = _plt()
     if models is None:
         raise ValueError("search regions need the guidance models of a guided run (not available for mode 'bf')")
-    rng = np.random.default_rng(seed)
     fin = np.asarray(models.final_queries)
     matched = dict(zip(result.pairs[:, 0].tolist(), result.pairs[:, 1].tolist()))
     pool = np.array([q for q in fin if q in matched]) if len(fin) else np.zeros(0, int)

@@ -20,8 +20,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import platform
-import subprocess
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -146,31 +144,9 @@ def median_table(rows: list[dict], columns: list[str], bin_deg: float = BIN_DEG)
 
 
 def _metadata(n_workers: int) -> dict:
-    try:
-        from .meta import run_metadata  # type: ignore[import-not-found]
+    from .meta import run_metadata
 
-        return run_metadata()
-    except Exception:  # noqa: BLE001 - meta module may not exist yet
-        pass
-    import cv2
-    import scipy
-
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, timeout=5).stdout.strip() or None
-    except Exception:  # noqa: BLE001
-        commit = None
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"git_commit": commit, "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "cv2": cv2.__version__, "cpu": cpu, "cpu_count": os.cpu_count(),
-            "workers": n_workers}
+    return {**run_metadata(), "workers": n_workers}
 
 
 def _plot(rows: list[dict], table: list[dict], path: Path) -> None:

@@ -376,7 +376,7 @@ def write_report(out: Path, results: dict, command: str) -> Path:
     peers = results.get("peers", [])
     all_methods = ["bf", "bf-1nn", "epi", "so", "so+epi", "so+epi+ia"] + list(peers)
     meta = results["meta"]
-    md = [f"# guidedmatch benchmark report\n",
+    md = ["# guidedmatch benchmark report\n",
           f"Command: `{command}`  \nGenerated: {meta.get('timestamp_utc', '')}, commit `{meta.get('git_commit', '?')}`"
           f"{' (dirty)' if meta.get('git_dirty') else ''}, {meta.get('cpu_model', '?')}, {meta.get('logical_cores', '?')} logical cores, "
           f"run time {results.get('elapsed_s', 0) / 60:.1f} min{' (--quick)' if results.get('quick') else ''}.\n",

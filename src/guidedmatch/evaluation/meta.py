@@ -57,7 +57,8 @@ def run_metadata(seed=None) -> dict:
     )
 
 
-def _default(o):
+def json_default(o):
+    """``json.dumps`` default for NumPy scalars/arrays, dataclasses and paths."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, np.integer):
@@ -80,7 +81,7 @@ def write_json(path, obj) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(obj, fh, default=_default, indent=1, allow_nan=True)
+            json.dump(obj, fh, default=json_default, indent=1, allow_nan=True)
         from ..features import publish
 
         publish(tmp, path)
