@@ -17,85 +17,40 @@ import numpy as np
 OURS = ("bf", "epi", "so", "so+epi", "so+epi+ia")
 PAPER_MODES = {"bf": "BF", "so": "SO", "so+epi": "SO+EPI", "so+epi+ia": "SO+EPI+IA"}
 LABEL = {"bf": "BF", "bf-1nn": "BF 1-NN (no ratio)", "epi": "EPI", "so": "SO", "so+epi": "SO+EPI",
-         "so+epi+ia": "SO+EPI+IA", "cv2-bf": "OpenCV BF", "flann": "OpenCV FLANN", "faiss": "faiss exact", "gms": "GMS"}
+         "so+epi+ia": "SO+EPI+IA", "opencv_bf": "OpenCV BF", "opencv_flann": "OpenCV FLANN", "faiss_flat": "faiss exact",
+         "gms": "GMS"}
 QUICK = dict(oxford=[("bikes", 2), ("boat", 3), ("graf", 2)], synthetic_pairs=1, synthetic_side=1000, real_pairs=1,
              real_max_features=6000, alignment_pairs=300)
 
 
 # --------------------------------------------------------------------------------------------- peers
-def _ratio_pairs(idx, dist, ratio=0.8):
-    keep = (idx[:, 0] >= 0) & (dist[:, 0] < ratio * dist[:, 1])
-    return np.c_[np.flatnonzero(keep), idx[keep, 0]].astype(np.int64), dist[keep, 0].astype(np.float32)
-
-
 def run_peer(name: str, f1, f2, rotated: bool = False):
-    """Run one peer on the same features; returns ``(pairs, distances, seconds, comparisons or None)``."""
-    import cv2
+    """Run one peer of :mod:`guidedmatch.evaluation.peers` on the same features -> MatchResult.
 
-    d1, d2 = f1.descriptors, f2.descriptors
-    norm = cv2.NORM_HAMMING if f1.binary else cv2.NORM_L2
-    t0 = time.perf_counter()
-    if name == "cv2-bf":
-        knn = cv2.BFMatcher(norm).knnMatch(d1, d2, k=2)
-        arr = np.array([(m[0].trainIdx, m[0].distance, m[1].trainIdx, m[1].distance) if len(m) == 2 else
-                        (m[0].trainIdx, m[0].distance, -1, np.inf) for m in knn]).reshape(-1, 4)
-        pairs, dist = _ratio_pairs(arr[:, [0, 2]].astype(np.int64), arr[:, [1, 3]])
-        comp = len(d1) * len(d2)
-    elif name == "flann":
-        if f1.binary:
-            fl = cv2.FlannBasedMatcher(dict(algorithm=6, table_number=6, key_size=12, multi_probe_level=1), dict(checks=64))
-        else:
-            fl = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64))
-        knn = fl.knnMatch(d1, d2, k=2)
-        arr = np.array([(m[0].trainIdx, m[0].distance, m[1].trainIdx, m[1].distance) if len(m) == 2 else
-                        (-1, np.inf, -1, np.inf) for m in knn]).reshape(-1, 4)
-        pairs, dist = _ratio_pairs(arr[:, [0, 2]].astype(np.int64), arr[:, [1, 3]])
-        comp = None  # approximate search: the number of distances evaluated is not exposed by OpenCV
-    elif name == "faiss":
-        import faiss
+    GMS gets its rotation/scale options on the rotated sets (synthetic 2-3, boat, graf, bark)."""
+    from . import peers
 
-        if f1.binary:
-            index = faiss.IndexBinaryFlat(d1.shape[1] * 8)
-        else:
-            index = faiss.IndexFlatL2(d1.shape[1])
-        index.add(d2)
-        D, I = index.search(d1, 2)
-        D = D.astype(np.float64) if f1.binary else np.sqrt(np.maximum(D, 0))
-        pairs, dist = _ratio_pairs(I.astype(np.int64), D)
-        comp = len(d1) * len(d2)
-    elif name == "gms":
-        m = cv2.BFMatcher(norm).match(d1, d2)
-        kp1, kp2 = f1.to_cv_keypoints(), f2.to_cv_keypoints()
-        good = cv2.xfeatures2d.matchGMS(tuple(int(v) for v in f1.image_size), tuple(int(v) for v in f2.image_size),
-                                        kp1, kp2, m, withRotation=rotated, withScale=rotated, thresholdFactor=6)
-        pairs = np.array([(g.queryIdx, g.trainIdx) for g in good], np.int64).reshape(-1, 2)
-        dist = np.array([g.distance for g in good], np.float32)
-        comp = len(d1) * len(d2)
-    else:
-        raise ValueError(f"unknown peer {name!r}")
-    return pairs, dist, time.perf_counter() - t0, comp
+    if name == "gms":
+        return peers.match_gms(f1, f2, with_rotation=rotated, with_scale=rotated)
+    return peers.PEERS[name](f1, f2)
 
 
 def available_peers() -> list[str]:
-    peers = ["cv2-bf", "flann", "gms"]
-    try:
-        import faiss  # noqa: F401
+    from . import peers
 
-        peers.insert(2, "faiss")
-    except ImportError:
-        pass
-    return peers
+    return peers.available_peers()
 
 
 # --------------------------------------------------------------------------------------------- one pair
-def ransac_precision(pts1, pts2, seed: int = 0) -> float:
-    """The paper's real-image precision: share of matches that are RANSAC-F inliers (MAGSAC++, 1 px)."""
-    from ..epipolar import estimate_fundamental
+def ransac_precision(pts1, pts2, distances) -> float:
+    """The paper's real-image precision: share of matches that are RANSAC-F inliers
+    (:func:`guidedmatch.evaluation.metrics.ransac_fundamental`: PROSAC by descriptor distance, 3 px symmetric)."""
+    from .metrics import ransac_fundamental
 
     if len(pts1) < 8:
         return float("nan")
-    fr = estimate_fundamental(pts1, pts2, threshold=1.0, seed=seed)
-    return float(fr.num_inliers / len(pts1)) if fr else 0.0
+    res = ransac_fundamental(pts1, pts2, distances)
+    return float(res[1].mean()) if res else 0.0
 
 
 def evaluate_pair(pair, f1, f2, *, repeats=1, peers=(), config=None, rotated=False, real=False, keep_pairs=()):
@@ -106,7 +61,7 @@ def evaluate_pair(pair, f1, f2, *, repeats=1, peers=(), config=None, rotated=Fal
     config = config or MatcherConfig()
     row = dict(name=pair.name, n1=len(f1), n2=len(f2), bf_comparisons=len(f1) * len(f2), methods={}, kept={})
 
-    def record(key, pairs, times, comp, stats=None):
+    def record(key, pairs, times, comp, stats=None, distances=None):
         p1 = f1.keypoints[pairs[:, 0]] if len(pairs) else np.zeros((0, 2))
         p2 = f2.keypoints[pairs[:, 1]] if len(pairs) else np.zeros((0, 2))
         ok = pair.gt.correct(p1, p2) if len(pairs) else np.zeros(0, bool)
@@ -119,7 +74,7 @@ def evaluate_pair(pair, f1, f2, *, repeats=1, peers=(), config=None, rotated=Fal
                      candidates_p50=(stats.get("candidates_per_query") or {}).get("p50"),
                      alignment_H2=stats.get("alignment_H2"), roll_deg=(stats.get("updates") or [{}])[-1].get("roll_deg"))
         if real:
-            m["ransac_precision"] = ransac_precision(p1, p2)
+            m["ransac_precision"] = ransac_precision(p1, p2, distances)
         row["methods"][key] = m
         if key in keep_pairs:
             row["kept"][key] = dict(pts1=p1, pts2=p2, correct=ok)
@@ -129,15 +84,15 @@ def evaluate_pair(pair, f1, f2, *, repeats=1, peers=(), config=None, rotated=Fal
         for _ in range(repeats):
             res = match(f1, f2, mode, config)
             times.append(res.stats["time_s"])
-        record(mode, res.pairs, times, res.stats["comparisons"], res.stats)
+        record(mode, res.pairs, times, res.stats["comparisons"], res.stats, res.distances)
     r = match_bruteforce(f1, f2, ratio=None)
-    record("bf-1nn", r.pairs, [r.stats["time_s"]], r.stats["comparisons"])
+    record("bf-1nn", r.pairs, [r.stats["time_s"]], r.stats["comparisons"], distances=r.distances)
     for peer in peers:
         times, out = [], None
-        for _ in range(repeats if peer != "cv2-bf" else 1):
+        for _ in range(repeats if peer != "opencv_bf" else 1):
             out = run_peer(peer, f1, f2, rotated=rotated)
-            times.append(out[2])
-        record(peer, out[0], times, out[3])
+            times.append(out.stats["time_s"])
+        record(peer, out.pairs, times, out.stats.get("comparisons"), distances=out.distances)
     return row
 
 
@@ -209,7 +164,7 @@ def run_real(root, out, quick, repeats, detector, peers):
                 cache[str(path)] = _detect(img, detector, maxf)
         f1, f2 = cache[str(p.image1)], cache[str(p.image2)]
         keep = ("bf", "so+epi+ia") if k < 2 else ()
-        row = evaluate_pair(p, f1, f2, repeats=repeats, peers=[q for q in peers if q != "cv2-bf"], real=True, keep_pairs=keep)
+        row = evaluate_pair(p, f1, f2, repeats=repeats, peers=[q for q in peers if q != "opencv_bf"], real=True, keep_pairs=keep)
         if row["kept"]:
             figs.append(_motion_figure(out / f"motion_{Path(str(p.image1)).stem}_{Path(str(p.image2)).stem}.png", i1, row, p.name))
             H = row["methods"]["so+epi+ia"].get("alignment_H2")
@@ -405,8 +360,8 @@ def write_report(out: Path, results: dict, command: str) -> Path:
         rows = results["real"]
         md += ["\n## Real high-resolution pairs (Strecha Herz-Jesus-P8, 3072x2048, GT poses)\n",
                "Precision two ways: against the GT (symmetric epipolar distance < 3 px under the GT F) and the paper's way "
-               "(share of RANSAC-F inliers, MAGSAC++ 1 px). The paper's own real pairs (4000x3000, not public) are different images; "
-               "its table is shown for the ratios.\n", summary_table(rows, [m for m in all_methods if m != "cv2-bf"], real=True), "",
+               "(share of RANSAC-F inliers: PROSAC by descriptor distance, 1 px fit, inlier = symmetric epipolar distance < 3 px). The paper's own real pairs (4000x3000, not public) are different images; "
+               "its table is shown for the ratios.\n", summary_table(rows, [m for m in all_methods if m != "opencv_bf"], real=True), "",
                real_table(rows)]
         pr = (paper or {}).get("real_4000x3000")
         if pr:
@@ -470,7 +425,7 @@ def main(args) -> int:
         results["oxford"], figs = run_oxford(root, out, args.quick, repeats, args.detector, peers)
         results["figures"] += [str(f) for f in figs]
     if "synthetic" in which:
-        results["synthetic"] = run_synthetic(root, out, args.quick, 1, args.detector, [p for p in peers if p != "cv2-bf"], args.seed)
+        results["synthetic"] = run_synthetic(root, out, args.quick, 1, args.detector, [p for p in peers if p != "opencv_bf"], args.seed)
     if "real" in which:
         results["real"], figs = run_real(root, out, args.quick, repeats, args.detector, peers)
         results["figures"] += [str(f) for f in figs]

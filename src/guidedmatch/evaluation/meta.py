@@ -1,89 +1,174 @@
-"""Run metadata for benchmark outputs and an atomic JSON writer."""
+"""Run metadata and atomic JSON output for benchmark scripts (CONVENTIONS: every benchmark JSON carries
+the git commit, library versions, CPU model and thread settings of the run)."""
 from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
 import json
+import math
 import os
 import platform
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+THREAD_ENV_VARS = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                   "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
 
-def _git(*args) -> str | None:
+
+def _repo_root() -> Path:
+    """The repository root (this file is ``src/guidedmatch/evaluation/meta.py``)."""
+    return Path(__file__).resolve().parents[3]
+
+
+def _git(args: list[str], cwd: Path) -> str | None:
     try:
-        out = subprocess.run(["git", *args], cwd=Path(__file__).resolve().parent, capture_output=True, text=True, timeout=5)
+        out = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() if out.returncode == 0 else None
 
 
-def _cpu_model() -> str:
+def git_info(repo: str | os.PathLike | None = None) -> dict[str, Any]:
+    """``{"commit": sha or None, "dirty": bool or None}`` of the repository (None when not a git checkout
+    or without commits). ``dirty`` = uncommitted changes to tracked files (untracked outputs such as
+    ``reports/`` do not count)."""
+    root = Path(repo) if repo is not None else _repo_root()
+    commit = _git(["rev-parse", "HEAD"], root)
+    status = _git(["status", "--porcelain", "--untracked-files=no"], root)
+    return {"commit": commit, "dirty": None if status is None else bool(status)}
+
+
+def _version(module: str) -> str | None:
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+        mod = __import__(module)
+    except Exception:  # noqa: BLE001 - any import failure means "not available"
+        return None
+    return str(getattr(mod, "__version__", "unknown"))
+
+
+def cpu_model() -> str | None:
+    """CPU model name from ``/proc/cpuinfo`` (Linux), else ``platform.processor()`` or None."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.lower().startswith(("model name", "hardware", "cpu model")):
+                    return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return platform.processor() or platform.machine()
+    return platform.processor() or None
 
 
-def _version(mod: str) -> str | None:
+def run_metadata(seed: int | None = None) -> dict[str, Any]:
+    """Everything needed to interpret a benchmark number later, as one flat dict.
+
+    Keys: ``git_commit`` (None outside a git checkout / before the first commit), ``git_dirty``;
+    versions ``python``, ``numpy``, ``scipy``, ``cv2``, ``numba``, ``faiss``, ``guidedmatch`` (None when
+    not installed); ``cpu_model`` (``/proc/cpuinfo``), ``logical_cores`` (``os.cpu_count()``),
+    ``usable_cores`` (CPU affinity); threads: ``numba_num_threads`` (``numba.get_num_threads()``),
+    ``cv2_num_threads``, ``faiss_omp_threads`` and the environment variables ``NUMBA_NUM_THREADS``,
+    ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ... (None when unset);
+    ``platform``, ``machine``, ``timestamp_utc`` (ISO 8601), ``seed``.
+    """
+    git = git_info()
+    meta: dict[str, Any] = {"git_commit": git["commit"], "git_dirty": git["dirty"],
+                            "python": sys.version.split()[0]}
+    for name in ("numpy", "scipy", "cv2", "numba", "faiss", "guidedmatch"):
+        meta[name] = _version(name)
+    meta["cpu_model"] = cpu_model()
+    meta["logical_cores"] = os.cpu_count()
     try:
-        m = __import__(mod)
-    except ImportError:
+        meta["usable_cores"] = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        meta["usable_cores"] = None
+    try:
+        import numba
+
+        meta["numba_num_threads"] = int(numba.get_num_threads())
+        meta["numba_threading_layer"] = _numba_layer(numba)
+    except Exception:  # noqa: BLE001
+        meta["numba_num_threads"] = None
+    try:
+        import cv2
+
+        meta["cv2_num_threads"] = int(cv2.getNumThreads())
+    except Exception:  # noqa: BLE001
+        meta["cv2_num_threads"] = None
+    try:
+        import faiss
+
+        meta["faiss_omp_threads"] = int(faiss.omp_get_max_threads())
+    except Exception:  # noqa: BLE001
+        meta["faiss_omp_threads"] = None
+    for k in THREAD_ENV_VARS:
+        meta[k] = os.environ.get(k)
+    meta["platform"] = platform.platform()
+    meta["machine"] = platform.machine()
+    meta["timestamp_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    meta["seed"] = seed
+    return meta
+
+
+def _numba_layer(numba) -> str | None:
+    try:
+        return str(numba.threading_layer())
+    except Exception:  # noqa: BLE001 - raises before the first parallel function ran
         return None
-    return getattr(m, "__version__", None)
 
 
-def run_metadata(seed=None) -> dict:
-    """Commit (+ dirty flag), package versions, CPU, thread settings, platform, UTC time and seed."""
-    import numba
-
-    from .. import __version__
-
-    return dict(
-        guidedmatch=__version__, git_commit=_git("rev-parse", "--short", "HEAD"),
-        git_dirty=bool(_git("status", "--porcelain", "--untracked-files=no")),
-        python=platform.python_version(), numpy=np.__version__, scipy=_version("scipy"), cv2=_version("cv2"),
-        numba=numba.__version__, faiss=_version("faiss"), cpu_model=_cpu_model(), logical_cores=os.cpu_count(),
-        numba_threads=numba.get_num_threads(),
-        thread_env={k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")},
-        platform=platform.platform(), timestamp_utc=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        seed=seed,
-    )
-
-
-def json_default(o):
-    """``json.dumps`` default for NumPy scalars/arrays, dataclasses and paths."""
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if dataclasses.is_dataclass(o):
-        return dataclasses.asdict(o)
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
+def to_jsonable(obj: Any) -> Any:
+    """Recursively convert to JSON-ready Python: NumPy scalars/arrays -> int/float/bool/list, tuples/sets
+    -> lists, ``Path`` -> str, dataclasses -> dicts, dict keys -> str; non-finite floats (NaN, inf) ->
+    ``None`` so the output is strict JSON."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, (str, type(None))):
+        return obj
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return to_jsonable(dataclasses.asdict(obj))
+    if isinstance(obj, (_dt.datetime, _dt.date)):
+        return obj.isoformat()
+    return str(obj)
 
 
-def write_json(path, obj) -> Path:
-    """Write ``obj`` as indented JSON atomically (temp file in the same folder + ``os.replace``)."""
+def json_default(obj: Any) -> Any:
+    """``default=`` hook for ``json.dump(s)``: NumPy scalars/arrays, paths, sets, dataclasses, dates
+    (anything else -> ``str``). Unlike :func:`to_jsonable` it cannot reach plain-float NaN/inf."""
+    return to_jsonable(obj)
+
+
+def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Path:
+    """Write ``obj`` as strict JSON (see :func:`to_jsonable`; NaN/inf become ``null``) atomically: a temp
+    file in the same folder, flushed and fsynced, then given normal permissions and renamed over ``path``
+    (:func:`guidedmatch.features.publish`, i.e. ``os.replace``). Creates the parent folder. Returns the path."""
+    from ..features import publish
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(obj, fh, default=json_default, indent=1, allow_nan=True)
-        from ..features import publish
-
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
         publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

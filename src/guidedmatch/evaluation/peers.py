@@ -1,0 +1,276 @@
+"""Peer matchers for the benchmark, run in the same process on the *same* features as guidedmatch.
+
+Every peer takes two ``Features`` (or, except GMS, two descriptor arrays: ``float32`` -> L2,
+``uint8`` packed bits -> Hamming) and returns :class:`guidedmatch.results.MatchResult` with
+``stats = {"method", "comparisons", "time_s", ...}``:
+
+=================  ===================================================  =============================
+peer               what                                                 ``comparisons``
+=================  ===================================================  =============================
+``opencv_bf``      ``cv2.BFMatcher.knnMatch(k=2)`` + Lowe ratio         ``N1 * N2`` (exact)
+``opencv_flann``   ``cv2.FlannBasedMatcher`` (KD-tree for float, LSH    ``None``: approximate search,
+                   for binary) ``knnMatch(k=2)`` + ratio                FLANN does not report how many
+                                                                        distances it evaluated
+``faiss_flat``     faiss ``IndexFlatL2`` / ``IndexBinaryFlat`` exact     ``N1 * N2`` (exact)
+                   2-NN + ratio (needs the ``bench`` extra)
+``gms``            1-NN (``BFMatcher.match``) filtered by               ``N1 * N2`` (the 1-NN pass)
+                   ``cv2.xfeatures2d.matchGMS`` (Bian et al. 2017)
+=================  ===================================================  =============================
+
+Ratio test as in :mod:`guidedmatch.bruteforce`: keep ``(i, j1)`` iff ``d1 < ratio * d2`` (strict,
+Euclidean -- not squared -- distances, Hamming bit counts); with a single image-2 descriptor ``d2 = inf``
+(kept); a query that gets no neighbour back (FLANN LSH can return none) is dropped.
+``time_s`` covers index building + search + ratio test (descriptors already computed), measured with
+``time.perf_counter``; thread counts of the library used are in ``stats["threads"]``.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..results import MatchResult, empty_pairs
+
+DEFAULT_RATIO = 0.8  # Lowe ratio used by all ratio-test peers
+
+FAISS_MISSING = (
+    "faiss is not installed; install the benchmark extra: pip install 'guidedmatch[bench]' "
+    "(or pip install faiss-cpu)"
+)
+
+
+def _descriptors(f: Any) -> tuple[np.ndarray, bool]:
+    """``(descriptors, binary)`` of a Features-like object or an array (uint8 array -> binary)."""
+    d = getattr(f, "descriptors", f)
+    d = np.asarray(d)
+    binary = bool(getattr(f, "binary", d.dtype == np.uint8))
+    if d.ndim != 2:
+        d = d.reshape(len(d), -1) if d.size else d.reshape(0, 32 if binary else 128)
+    d = np.ascontiguousarray(d, dtype=np.uint8 if binary else np.float32)
+    return d, binary
+
+
+def _pair_descriptors(f1: Any, f2: Any) -> tuple[np.ndarray, np.ndarray, bool]:
+    d1, b1 = _descriptors(f1)
+    d2, b2 = _descriptors(f2)
+    if b1 != b2:
+        raise ValueError("cannot match binary against float descriptors")
+    if len(d1) and len(d2) and d1.shape[1] != d2.shape[1]:
+        raise ValueError(f"descriptor lengths differ: {d1.shape[1]} vs {d2.shape[1]}")
+    return d1, d2, b1
+
+
+def _ratio_select(query: np.ndarray, nn: np.ndarray, dist1: np.ndarray, dist2: np.ndarray,
+                  ratio: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``(query, nn)`` passing ``dist1 < ratio * dist2`` (all if ``ratio`` is None)."""
+    keep = np.isfinite(dist1) & (nn >= 0)
+    if ratio is not None:
+        keep &= dist1 < ratio * dist2
+    if not keep.any():
+        return empty_pairs(), np.zeros(0, np.float32)
+    pairs = np.stack([query[keep], nn[keep]], axis=1).astype(np.int64)
+    return pairs, dist1[keep].astype(np.float32)
+
+
+def _knn_lists_to_arrays(knn: list, n1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """OpenCV ``knnMatch`` output -> ``(query, nn, d1, d2)`` arrays (``d2 = inf`` when one neighbour,
+    ``nn = -1``/``d1 = inf`` when none)."""
+    q = np.arange(n1, dtype=np.int64)
+    nn = np.full(n1, -1, np.int64)
+    d1 = np.full(n1, np.inf)
+    d2 = np.full(n1, np.inf)
+    for ms in knn:
+        if not ms:
+            continue
+        i = ms[0].queryIdx
+        nn[i] = ms[0].trainIdx
+        d1[i] = ms[0].distance
+        if len(ms) > 1:
+            d2[i] = ms[1].distance
+    return q, nn, d1, d2
+
+
+def _empty(method: str, n1: int, n2: int, t0: float, comparisons: int | None, **extra) -> MatchResult:
+    stats = {"method": method, "comparisons": comparisons, "time_s": time.perf_counter() - t0,
+             "num_features": (n1, n2), **extra}
+    return MatchResult(empty_pairs(), np.zeros(0, np.float32), stats)
+
+
+def match_opencv_bf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO) -> MatchResult:
+    """Exact 2-NN with ``cv2.BFMatcher`` (``NORM_L2`` / ``NORM_HAMMING``) + Lowe ratio."""
+    import cv2
+
+    d1, d2, binary = _pair_descriptors(f1, f2)
+    n1, n2 = len(d1), len(d2)
+    extra = {"metric": "hamming" if binary else "l2", "ratio": ratio, "threads": cv2.getNumThreads()}
+    t0 = time.perf_counter()
+    if n1 == 0 or n2 == 0:
+        return _empty("opencv_bf", n1, n2, t0, n1 * n2, **extra)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2, crossCheck=False)
+    knn = bf.knnMatch(d1, d2, k=min(2, n2))
+    pairs, dist = _ratio_select(*_knn_lists_to_arrays(knn, n1), ratio)
+    dt = time.perf_counter() - t0
+    return MatchResult(pairs, dist, {"method": "opencv_bf", "comparisons": n1 * n2, "time_s": dt,
+                                     "num_features": (n1, n2), **extra})
+
+
+def match_opencv_flann(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *, trees: int = 5,
+                       checks: int = 50, lsh_tables: int = 6, lsh_key_size: int = 12,
+                       lsh_multi_probe: int = 1) -> MatchResult:
+    """Approximate 2-NN with ``cv2.FlannBasedMatcher`` + Lowe ratio.
+
+    Float descriptors: randomized KD-trees (``trees``, ``checks`` leaves visited per query). Binary: LSH
+    (``lsh_tables`` tables, ``lsh_key_size``-bit keys, ``lsh_multi_probe`` probe level). The number of
+    descriptor distances FLANN evaluates is not exposed, so ``stats["comparisons"]`` is ``None``
+    (unknown) -- never an estimate.
+    """
+    import cv2
+
+    d1, d2, binary = _pair_descriptors(f1, f2)
+    n1, n2 = len(d1), len(d2)
+    if binary:
+        index_params = {"algorithm": 6, "table_number": lsh_tables, "key_size": lsh_key_size,
+                        "multi_probe_level": lsh_multi_probe}  # FLANN_INDEX_LSH
+    else:
+        index_params = {"algorithm": 1, "trees": trees}  # FLANN_INDEX_KDTREE
+    extra = {"metric": "hamming" if binary else "l2", "ratio": ratio, "index": "lsh" if binary else "kdtree",
+             "index_params": index_params, "checks": checks, "threads": cv2.getNumThreads(),
+             "comparisons_note": "unknown: approximate search, FLANN does not report distance evaluations"}
+    t0 = time.perf_counter()
+    if n1 == 0 or n2 == 0:
+        return _empty("opencv_flann", n1, n2, t0, None, **extra)
+    fl = cv2.FlannBasedMatcher(index_params, {"checks": int(checks)})
+    knn = fl.knnMatch(d1, d2, k=min(2, n2))
+    pairs, dist = _ratio_select(*_knn_lists_to_arrays(knn, n1), ratio)
+    dt = time.perf_counter() - t0
+    return MatchResult(pairs, dist, {"method": "opencv_flann", "comparisons": None, "time_s": dt,
+                                     "num_features": (n1, n2), **extra})
+
+
+def _import_faiss():
+    try:
+        import faiss  # noqa: F401
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError(FAISS_MISSING) from exc
+    return faiss
+
+
+def faiss_available() -> bool:
+    """True when faiss can be imported (callers skip the faiss peer otherwise)."""
+    try:
+        _import_faiss()
+    except ImportError:
+        return False
+    return True
+
+
+def match_faiss(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO) -> MatchResult:
+    """Exact 2-NN with faiss (``IndexFlatL2`` for float, ``IndexBinaryFlat`` for binary) + Lowe ratio.
+
+    ``IndexFlatL2`` returns squared L2 distances; they are clamped at 0 and square-rooted before the ratio
+    test. Raises ``ImportError`` naming the ``bench`` extra when faiss is missing.
+    """
+    faiss = _import_faiss()
+    d1, d2, binary = _pair_descriptors(f1, f2)
+    n1, n2 = len(d1), len(d2)
+    extra = {"metric": "hamming" if binary else "l2", "ratio": ratio, "threads": faiss.omp_get_max_threads(),
+             "index": "IndexBinaryFlat" if binary else "IndexFlatL2"}
+    t0 = time.perf_counter()
+    if n1 == 0 or n2 == 0:
+        return _empty("faiss_flat", n1, n2, t0, n1 * n2, **extra)
+    k = min(2, n2)
+    if binary:
+        index = faiss.IndexBinaryFlat(d2.shape[1] * 8)
+        index.add(d2)
+        D, I = index.search(d1, k)
+        D = D.astype(np.float64)
+    else:
+        index = faiss.IndexFlatL2(d2.shape[1])
+        index.add(d2)
+        D, I = index.search(d1, k)
+        D = np.sqrt(np.maximum(D.astype(np.float64), 0.0))
+    I = I.astype(np.int64)
+    D[I < 0] = np.inf
+    nn = I[:, 0]
+    dist1 = D[:, 0]
+    dist2 = D[:, 1] if k == 2 else np.full(n1, np.inf)
+    pairs, dist = _ratio_select(np.arange(n1, dtype=np.int64), nn, dist1, dist2, ratio)
+    dt = time.perf_counter() - t0
+    return MatchResult(pairs, dist, {"method": "faiss_flat", "comparisons": n1 * n2, "time_s": dt,
+                                     "num_features": (n1, n2), **extra})
+
+
+def match_gms(f1: Any, f2: Any, *, with_rotation: bool = False, with_scale: bool = False,
+              threshold_factor: float = 6.0) -> MatchResult:
+    """GMS (grid-based motion statistics, Bian et al. CVPR 2017) on exact 1-NN matches.
+
+    1-NN from ``cv2.BFMatcher.match`` (no ratio test, no cross-check), then
+    ``cv2.xfeatures2d.matchGMS(size1, size2, kp1, kp2, matches, withRotation, withScale, thresholdFactor)``.
+    Needs ``Features`` (keypoints and ``image_size``), not bare descriptor arrays.
+    ``stats["num_nn_matches"]`` is the number of 1-NN matches fed to GMS; ``time_s`` excludes the
+    conversion of keypoints to ``cv2.KeyPoint``.
+    """
+    import cv2
+
+    for f in (f1, f2):
+        if not (hasattr(f, "keypoints") and hasattr(f, "image_size")):
+            raise TypeError("match_gms needs Features (keypoints + image_size), not bare descriptor arrays")
+    if not hasattr(cv2, "xfeatures2d") or not hasattr(cv2.xfeatures2d, "matchGMS"):
+        raise ImportError("cv2.xfeatures2d.matchGMS is missing: install opencv-contrib-python(-headless)")
+    d1, d2, binary = _pair_descriptors(f1, f2)
+    n1, n2 = len(d1), len(d2)
+    extra = {"metric": "hamming" if binary else "l2", "with_rotation": bool(with_rotation),
+             "with_scale": bool(with_scale), "threshold_factor": float(threshold_factor),
+             "threads": cv2.getNumThreads()}
+    kp1 = _cv_keypoints(f1)  # conversion to cv2.KeyPoint is data marshalling, kept out of time_s
+    kp2 = _cv_keypoints(f2)
+    t0 = time.perf_counter()
+    if n1 == 0 or n2 == 0:
+        return _empty("gms", n1, n2, t0, n1 * n2, num_nn_matches=0, **extra)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2, crossCheck=False)
+    nn = bf.match(d1, d2)
+    good = cv2.xfeatures2d.matchGMS(tuple(int(v) for v in f1.image_size), tuple(int(v) for v in f2.image_size),
+                                    kp1, kp2, nn, withRotation=bool(with_rotation), withScale=bool(with_scale),
+                                    thresholdFactor=float(threshold_factor))
+    if len(good):
+        pairs = np.array([(m.queryIdx, m.trainIdx) for m in good], dtype=np.int64)
+        dist = np.array([m.distance for m in good], dtype=np.float32)
+        order = np.argsort(pairs[:, 0], kind="stable")
+        pairs, dist = pairs[order], dist[order]
+    else:
+        pairs, dist = empty_pairs(), np.zeros(0, np.float32)
+    dt = time.perf_counter() - t0
+    return MatchResult(pairs, dist, {"method": "gms", "comparisons": n1 * n2, "time_s": dt,
+                                     "num_features": (n1, n2), "num_nn_matches": len(nn), **extra})
+
+
+def _cv_keypoints(f: Any) -> list:
+    """``cv2.KeyPoint`` list from Features (size from ``scales`` or 1 px, angle from ``angles`` or -1)."""
+    import cv2
+
+    if hasattr(f, "to_cv_keypoints"):
+        return list(f.to_cv_keypoints())
+    kp = np.asarray(f.keypoints, dtype=np.float64).reshape(-1, 2)
+    sc = getattr(f, "scales", None)
+    an = getattr(f, "angles", None)
+    return [cv2.KeyPoint(float(x), float(y), float(sc[i]) if sc is not None else 1.0,
+                         float(an[i]) if an is not None else -1.0) for i, (x, y) in enumerate(kp)]
+
+
+#: Peer name -> matcher ``fn(f1, f2) -> MatchResult`` with default settings.
+PEERS: dict[str, Callable[..., MatchResult]] = {
+    "opencv_bf": match_opencv_bf,
+    "opencv_flann": match_opencv_flann,
+    "faiss_flat": match_faiss,
+    "gms": match_gms,
+}
+
+
+def available_peers() -> list[str]:
+    """Names in :data:`PEERS` whose dependencies are importable (faiss is optional)."""
+    names = list(PEERS)
+    if not faiss_available():
+        names.remove("faiss_flat")
+    return names
