@@ -94,12 +94,13 @@ def _desc_dist_overload(a, b):
 
 @njit(inline="always", cache=True)
 def _push(d, j, b1, j1, b2, j2):
-    # top-2 update; equal distances prefer the lower index (deterministic, like argmin)
+    # top-2 update; equal distances prefer the lower index (deterministic, like argmin).
+    # Fast path first: almost every value is not among the best two, which costs one comparison.
+    if d > b2 or (d == b2 and j >= j2 >= 0):
+        return b1, j1, b2, j2
     if d < b1 or (d == b1 and j < j1):
         return d, j, b1, j1
-    if d < b2 or (d == b2 and j < j2):
-        return b1, j1, d, j
-    return b1, j1, b2, j2
+    return b1, j1, d, j
 
 
 # --------------------------------------------------------------------------- dense top-2
