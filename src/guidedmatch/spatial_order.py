@@ -184,6 +184,26 @@ def permutation_from_coordinates(x1, x2, y1=None, y2=None) -> tuple[np.ndarray, 
     return sigma, r1, r2
 
 
+@njit(inline="always", cache=True)
+def _fenwick_prefix(tree, q):  # pragma: no cover - numba
+    """Sum of the Fenwick tree's counts at 1-based positions <= q."""
+    s = 0
+    t = q
+    while t > 0:
+        s += tree[t]
+        t -= t & (-t)
+    return s
+
+
+@njit(inline="always", cache=True)
+def _fenwick_add(tree, q, size):  # pragma: no cover - numba
+    """Add one at 1-based position q of a Fenwick tree of length ``size``."""
+    t = q
+    while t < size:
+        tree[t] += 1
+        t += t & (-t)
+
+
 @njit(cache=True)
 def _inversions_dense(r, nvals):  # pragma: no cover - numba
     """H^l, H^r for a sequence of dense ranks ``r`` (ties allowed, not inversions) via a Fenwick tree."""
@@ -304,16 +324,9 @@ def _sweep_kendall(seq, lo, hi, bounds, out_k, out_n):  # pragma: no cover - num
             v = seq[p]
             if v >= lo and v < hi:
                 q = v - lo + 1
-                le = 0
-                t = q
-                while t > 0:
-                    le += tree[t]
-                    t -= t & (-t)
+                le = _fenwick_prefix(tree, q)
                 kk += cnt - le
-                t = q
-                while t < size:
-                    tree[t] += 1
-                    t += t & (-t)
+                _fenwick_add(tree, q, size)
                 cnt += 1
             if p + 1 == bounds[c]:
                 out_k[a, c] = kk
@@ -336,16 +349,9 @@ def _window_kendall(sigma, i1l, i1h, i2l, i2h):  # pragma: no cover - numba
         v = sigma[i]
         if v >= i2l and v < i2h:
             q = v - i2l + 1
-            le = 0
-            t = q
-            while t > 0:
-                le += tree[t]
-                t -= t & (-t)
+            le = _fenwick_prefix(tree, q)
             kk += cnt - le
-            t = q
-            while t < size:
-                tree[t] += 1
-                t += t & (-t)
+            _fenwick_add(tree, q, size)
             cnt += 1
     return kk, cnt
 
