@@ -172,3 +172,24 @@ def test_byte_exact_kernel_equals_float_kernel(scene_and_features, monkeypatch):
     np.testing.assert_array_equal(a.pairs, b.pairs)
     np.testing.assert_allclose(a.distances, b.distances, rtol=1e-6)
     assert a.stats["comparisons"] == b.stats["comparisons"]
+
+
+def test_band_only_rescue_is_in_the_reference_regions_and_counted_once(scene_and_features):
+    """Features outside the SO window but inside the F-inlier extent are matched in the band only; the public
+    GuidanceModels (plots, candidates()) must describe the same regions the kernel searched."""
+    from guidedmatch.matcher import search_regions
+
+    _, f1, f2 = scene_and_features
+    r, models = match(f1, f2, "so+epi+ia", FAST.replace(recheck=False), return_models=True)
+    final = models.final_queries
+    keep, lo, hi, lines, rescued = search_regions(models.pts1a[final], models.so, models.F_aligned,
+                                                  models.inlier_x1_range, "band")
+    k2, lo2, hi2, _ = models.regions(final)
+    np.testing.assert_array_equal(keep, k2)
+    np.testing.assert_array_equal(lo[keep], lo2[keep])
+    assert np.all(np.isinf(lo[rescued])) and np.all(np.isinf(hi[rescued]))
+    # rescued features are counted where they are matched, never again by the re-check
+    assert r.stats["band_only_outside_window"] <= len(f1) - r.stats["phase_queries"][0]
+    assert rescued.sum() <= r.stats["band_only_outside_window"]
+    drop = match(f1, f2, "so+epi+ia", FAST.replace(recheck=False, outside_window="drop"))
+    assert drop.stats["band_only_outside_window"] == 0

@@ -43,7 +43,9 @@ def main(argv=None) -> None:
             "| set | method | % of BF comparisons | true | precision | time / BF | paper: % of BF | paper: true vs BF | paper: precision |",
             "|---|---|---|---|---|---|---|---|---|"]
     pkeys = {1: "synthetic_set1_color_translation_scale", 2: "synthetic_set2_color_scale_rotation", 3: "synthetic_set3_plus_perspective"}
-    ptab = json.loads((ROOT.parent / "shared" / "design" / "paper_tables.json").read_text()) if (ROOT.parent / "shared" / "design" / "paper_tables.json").exists() else {}
+    from guidedmatch.evaluation.bench import paper_tables
+
+    ptab = paper_tables() or {}
     for sid in (1, 2, 3):
         rows = [r for r in res["synthetic"][str(sid)] if "methods" in r]
         tot = lambda m, k: sum(r["methods"][m][k] for r in rows if r["methods"][m].get(k) is not None)  # noqa: E731

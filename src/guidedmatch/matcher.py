@@ -115,6 +115,39 @@ class _Models:
         return self.F is not None or self.so is not None
 
 
+def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x1_range=None,
+                   outside_window: str = "drop"):
+    """Search region of image-1 features (aligned coordinates ``pts1a (Q,2)``) under one set of models.
+
+    Returns ``(keep, lo, hi, lines, rescued)``: ``keep (Q,)`` feature inside the overlap window ω* (or rescued),
+    ``[lo, hi]`` the admissible aligned image-2 x-range (±inf without a spatial-order model), ``lines (Q,3)`` the
+    aligned epipolar lines scaled to a²+b²=1 (None without F; a query at the epipole gets ``[0, 0, 1]``, which
+    matches nothing), ``rescued (Q,)`` features outside ω* kept for band-only matching because they lie inside
+    ``inlier_x1_range`` (``outside_window="band"`` with an F model).
+    """
+    nq = len(pts1a)
+    keep, lo, hi = np.ones(nq, bool), np.full(nq, -np.inf), np.full(nq, np.inf)
+    rescued = np.zeros(nq, bool)
+    if so is not None:
+        from .spatial_order import admissible_x_ranges
+
+        keep, lo, hi, _ = admissible_x_ranges(so, pts1a[:, 0])
+        keep, lo, hi = np.asarray(keep, bool), np.asarray(lo, np.float64).copy(), np.asarray(hi, np.float64).copy()
+        if outside_window == "band" and F_aligned is not None and inlier_x1_range is not None:
+            rescued = ~keep & (pts1a[:, 0] >= inlier_x1_range[0]) & (pts1a[:, 0] <= inlier_x1_range[1])
+            keep = keep | rescued
+            lo[rescued], hi[rescued] = -np.inf, np.inf
+    lines = None
+    if F_aligned is not None:
+        lines = np.c_[pts1a, np.ones(nq)] @ F_aligned.T
+        nrm = np.hypot(lines[:, 0], lines[:, 1])
+        bad = ~(nrm > 1e-12)
+        lines[bad] = [0.0, 0.0, 1.0]
+        nrm[bad] = 1.0
+        lines = np.ascontiguousarray(lines / nrm[:, None])
+    return keep, lo, hi, lines, rescued
+
+
 @dataclass(frozen=True, eq=False)
 class GuidanceModels:
     """The final models of a guided run (``match(..., return_models=True)``), for plots and checks.
@@ -137,21 +170,15 @@ class GuidanceModels:
     band_px: float
     final_queries: np.ndarray
     F_aligned: np.ndarray | None = None
+    inlier_x1_range: tuple | None = None  # x-extent of the F inliers in image 1 (band-only policy)
+    outside_window: str = "drop"          # MatcherConfig.outside_window of the run
 
     def regions(self, queries: np.ndarray):
-        """Per image-1 feature: ``(keep, lo, hi, line)`` -- overlap flag, aligned x-range, aligned epipolar line."""
+        """Per image-1 feature: ``(keep, lo, hi, lines)`` -- as the matcher used them (:func:`search_regions`)."""
         queries = np.asarray(queries, np.int64)
-        n = len(queries)
-        keep, lo, hi = np.ones(n, bool), np.full(n, -np.inf), np.full(n, np.inf)
-        if self.so is not None:
-            from .spatial_order import admissible_x_ranges
-
-            keep, lo, hi, _ = admissible_x_ranges(self.so, self.pts1a[queries, 0])
-        lines = None
-        if self.F_aligned is not None:
-            lines = np.c_[self.pts1a[queries], np.ones(n)] @ self.F_aligned.T
-            lines = lines / np.hypot(lines[:, 0], lines[:, 1])[:, None]
-        return np.asarray(keep, bool), np.asarray(lo, float), np.asarray(hi, float), lines
+        keep, lo, hi, lines, _ = search_regions(self.pts1a[queries], self.so, self.F_aligned, self.inlier_x1_range,
+                                                self.outside_window)
+        return keep, lo, hi, lines
 
     def candidates(self, i1: int) -> np.ndarray:
         """Reference (O(N2), plain NumPy) candidate set of image-1 feature ``i1``: image-2 indices."""
@@ -253,7 +280,6 @@ class _Run:
             if u1 is not None and u2 is not None:
                 self.kdesc1, self.kdesc2, self.byte_exact = u1, u2, True
         self.fallbacks: list[dict] = []
-        self.comparisons = 0
         self.ncand: list[np.ndarray] = []
         self.timing = dict(initial_bf_s=0.0, model_fit_s=0.0, guided_progressive_s=0.0, final_pass_s=0.0, recheck_s=0.0,
                            so_prob_s=0.0)
@@ -313,7 +339,6 @@ class _Run:
             self.d2_sqnorms = np.einsum("ij,ij->i", self.d2, self.d2)
         (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
         n2 = len(self.d2)
-        self.comparisons += len(queries) * n2
         self.account(len(queries), len(queries) * n2)
         nc = np.full(len(queries), n2, np.int64)
         self.ncand.append(nc)
@@ -323,40 +348,16 @@ class _Run:
         return self.select(queries, i1, s1, s2, nc)
 
     def regions(self, m: _Models, queries):
-        """Per query: keep mask, x-range [lo, hi] (aligned image 2) and normalized aligned epipolar line."""
-        nq = len(queries)
-        keep = np.ones(nq, bool)
-        lo = np.full(nq, -np.inf)
-        hi = np.full(nq, np.inf)
-        p1a = m.pts1a[queries]
-        contiguous = np.ones(nq, bool)
-        if m.so is not None:
-            from .spatial_order import admissible_x_ranges
-
-            keep, lo, hi, contiguous = admissible_x_ranges(m.so, p1a[:, 0])
-            keep = np.asarray(keep, bool)
-            lo = np.asarray(lo, np.float64)
-            hi = np.asarray(hi, np.float64)
-            ext = m.info.get("inlier_x1_range")
-            if self.c.outside_window == "band" and m.F is not None and ext is not None:
-                rescue = ~keep & (p1a[:, 0] >= ext[0]) & (p1a[:, 0] <= ext[1])
-                keep = keep | rescue
-                lo[rescue], hi[rescue] = -np.inf, np.inf
-                self.band_only += int(rescue.sum())
-        lines = np.zeros((nq, 3))
-        if m.F is not None:
-            Fa = m.info["F_aligned"]
-            lines = np.c_[p1a, np.ones(nq)] @ Fa.T
-            nrm = np.hypot(lines[:, 0], lines[:, 1])
-            bad = ~(nrm > 1e-12)
-            lines[bad] = [0.0, 0.0, 1.0]  # degenerate line (query at the epipole): matches nothing
-            nrm[bad] = 1.0
-            lines /= nrm[:, None]
-        return keep, lo, hi, np.ascontiguousarray(lines), contiguous
+        """:func:`search_regions` of ``queries`` under models ``m`` (no side effects)."""
+        return search_regions(m.pts1a[queries], m.so, m.info.get("F_aligned"), m.info.get("inlier_x1_range"),
+                              self.c.outside_window)
 
     def guided_batch(self, m: _Models, queries):
-        keep, lo, hi, lines, _ = self.regions(m, queries)
+        keep, lo, hi, lines, rescued = self.regions(m, queries)
         self.dropped_outside_overlap += int((~keep).sum())
+        self.band_only += int(rescued.sum())
+        if lines is None:
+            lines = np.zeros((len(queries), 3))
         q = queries[keep]
         lines, lo, hi = lines[keep], lo[keep], hi[keep]
         # process queries in image-1 position order: neighbours share candidate cells, which stay in cache
@@ -369,7 +370,6 @@ class _Run:
         inv = np.empty_like(o)
         inv[o] = np.arange(len(o))
         i1, s1, s2, nc = i1[inv], s1[inv], s2[inv], nc[inv]
-        self.comparisons += int(nc.sum())
         self.account(len(queries), int(nc.sum()))
         self.ncand.append(nc)
         self.no_region += int((nc == 0).sum())
@@ -495,7 +495,8 @@ class _Run:
             acc_phase.append(np.full(len(q), len(self.updates), np.int64))
         if models.guided:
             self.guidance = GuidanceModels(models.F, models.H1, models.H2, models.so, models.pts1a, models.pts2a,
-                                           float(c.band_px), np.asarray(rest, np.int64), models.info.get("F_aligned"))
+                                           float(c.band_px), np.asarray(rest, np.int64), models.info.get("F_aligned"),
+                                           models.info.get("inlier_x1_range"), c.outside_window)
         cat = lambda xs, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(0, dt)  # noqa: E731
         q, j, d = cat(acc_q, np.int64), cat(acc_j, np.int64), cat(acc_d, np.float32)
         single, phase = cat(acc_single, bool), cat(acc_phase, np.int64)
@@ -550,9 +551,10 @@ class _Run:
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         nc = np.concatenate(self.ncand) if self.ncand else np.zeros(0, np.int64)
         last = self.updates[-1] if self.updates else {}
+        comparisons = sum(self.phase_comparisons.values())
         stats = dict(
-            method=self.mode, mode=self.mode, comparisons=int(self.comparisons), num_features=(n1, n2),
-            bf_comparisons=int(n1) * int(n2), comparison_ratio=self.comparisons / max(1, n1 * n2),
+            method=self.mode, mode=self.mode, comparisons=int(comparisons), num_features=(n1, n2),
+            bf_comparisons=int(n1) * int(n2), comparison_ratio=comparisons / max(1, n1 * n2),
             metric="hamming" if self.binary else "l2", byte_exact_kernel=self.byte_exact, time_s=time.perf_counter() - t_start, timing=self.timing,
             num_model_updates=len(self.updates), updates=self.updates, candidates_per_query=_percentiles(nc),
             queries_matched_against=int(len(nc)), dropped_outside_overlap=self.dropped_outside_overlap,

@@ -215,15 +215,16 @@ def _aligned_figure(path, image1, image2, H2, title):
 
 
 # --------------------------------------------------------------------------------------------- report
-def _paper():
+def paper_tables() -> dict | None:
+    """The paper's table values (``shared/design/paper_tables.json`` beside the repository or beside the data
+    folder), or None when neither is there."""
     from ..datasets import data_root
 
-    for cand in (Path(__file__).resolve().parents[3] / ".." / "shared" / "design" / "paper_tables.json",):
-        if cand.exists():
-            return json.loads(cand.read_text())
+    cands = [Path(__file__).resolve().parents[3].parent / "shared" / "design" / "paper_tables.json"]
     root = data_root()
     if root is not None:
-        p = Path(root).parent / "design" / "paper_tables.json"
+        cands.append(Path(root).parent / "design" / "paper_tables.json")
+    for p in cands:
         if p.exists():
             return json.loads(p.read_text())
     return None
@@ -327,7 +328,7 @@ def real_table(rows) -> str:
 def write_report(out: Path, results: dict, command: str) -> Path:
     from ..features import atomic_write_text
 
-    paper = _paper()
+    paper = paper_tables()
     peers = results.get("peers", [])
     all_methods = ["bf", "bf-1nn", "epi", "so", "so+epi", "so+epi+ia"] + list(peers)
     meta = results["meta"]
