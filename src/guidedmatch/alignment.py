@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .epipolar import check_points, epipoles, normalize_fundamental
+from .epipolar import check_points, epipoles, map_points, normalize_fundamental
 from .results import Failure
 
 __all__ = [
@@ -475,9 +475,7 @@ def apply_homography(H: np.ndarray, pts) -> np.ndarray:
     """Map ``(N, 2)`` pixel coordinates by ``H`` (homogeneous column vectors): ``(N, 2)``; rows are
     ``NaN`` where the mapped ``w == 0`` (points on the line sent to infinity). Points with ``w < 0``
     (behind the rotated camera) are mapped normally."""
-    p = np.asarray(pts, np.float64).reshape(-1, 2)
-    H = np.asarray(H, np.float64)
-    q = p @ H[:, :2].T + H[:, 2]
+    q = map_points(H, pts)
     w = q[:, 2:3]
     with np.errstate(divide="ignore", invalid="ignore"):
         out = q[:, :2] / w

@@ -19,6 +19,7 @@ index is the nearest neighbour.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -26,6 +27,7 @@ from . import kernels
 from .results import MatchResult, empty_pairs
 
 DEFAULT_MEMORY_BUDGET_MB = 256.0
+SERIAL_TOP2_ROWS = 256  # GEMM blocks with fewer query rows are reduced single-threaded (see kernels.top2_gemm_serial)
 
 
 def check_descriptors(d1: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -90,11 +92,9 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
             blk = buf[: b - a]
             q = d1[a:b]
             np.matmul(q, d2.T, out=blk)
-            blk *= -2.0
-            blk += nn2[None, :]
-            blk += np.einsum("ij,ij->i", q, q)[:, None]
-            np.maximum(blk, 0.0, out=blk)
-            j1, v1, j2, v2 = kernels.top2_rows(blk)
+            # squared distances max(-2 q·t + |t|² + |q|², 0), formed and reduced to the top 2 in one pass
+            top2 = kernels.top2_gemm if b - a >= SERIAL_TOP2_ROWS else kernels.top2_gemm_serial
+            j1, v1, j2, v2 = top2(blk, nn2, np.einsum("ij,ij->i", q, q), want_column_best)
             i1[a:b], s1[a:b], i2[a:b], s2[a:b] = j1, v1, j2, v2
             if want_column_best:
                 cb = np.argmin(blk, axis=0)
@@ -105,6 +105,74 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     out = (i1, np.sqrt(s1), i2, np.sqrt(s2))
     col = (col_i, np.sqrt(col_s)) if want_column_best else None
     return out, col
+
+
+class DenseKnn2:
+    """Exact 2-NN of successive small query batches against one fixed float descriptor set (``(N2, D)``).
+
+    For the progressive matcher's unguided phase (a few batches of 64 queries). The image-2 columns are split
+    into one chunk per Numba thread; each chunk's GEMM (BLAS limited to one thread) and fused top-2 run in
+    their own Python thread and the chunk results are merged exactly (ties keep the lower index). Why not one
+    multi-threaded GEMM: OpenBLAS's worker threads keep spinning for tens of milliseconds after every call and
+    then slow the next Numba parallel kernel by up to 2x (measured on 2 cores: guided final pass 23 -> 45 ms);
+    single-threaded BLAS calls leave no spinning workers behind.
+
+    Use as a context manager: while it is open, BLAS libraries loaded by the process are limited to one thread
+    (``threadpoolctl``; process-wide, restored on exit). ``query(q)`` returns ``(i1, s1, i2, s2)`` with squared
+    L2 distances, identical to :func:`knn2` up to float32 GEMM rounding.
+    """
+
+    def __init__(self, d2: np.ndarray, d2_sqnorms: np.ndarray | None = None, threads: int | None = None):
+        from numba import get_num_threads
+
+        self.d2 = np.ascontiguousarray(d2, np.float32)
+        n2 = len(self.d2)
+        nn2 = np.einsum("ij,ij->i", self.d2, self.d2) if d2_sqnorms is None else np.asarray(d2_sqnorms, np.float32)
+        k = max(1, min(int(threads or get_num_threads()), max(1, n2 // 1024)))
+        cuts = np.linspace(0, n2, k + 1).astype(np.int64)
+        self.chunks = [(self.d2[a:b], nn2[a:b], int(a)) for a, b in zip(cuts[:-1], cuts[1:])]
+        self._pool = None
+        self._limit = None
+
+    def __enter__(self) -> "DenseKnn2":
+        from threadpoolctl import threadpool_limits
+
+        self._limit = threadpool_limits(limits=1, user_api="blas")
+        if len(self.chunks) > 1:
+            self._pool = ThreadPoolExecutor(len(self.chunks), thread_name_prefix="guidedmatch-knn2")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        if self._limit is not None:
+            self._limit.restore_original_limits()
+            self._limit = None
+
+    @staticmethod
+    def _chunk(q, qn, chunk):
+        t, tn, off = chunk
+        i1, s1, i2, s2 = kernels.top2_gemm_serial(q @ t.T, tn, qn, False)
+        return i1 + np.where(i1 >= 0, off, 0), s1, i2 + np.where(i2 >= 0, off, 0), s2
+
+    def query(self, q: np.ndarray):
+        q = np.ascontiguousarray(q, np.float32)
+        qn = np.einsum("ij,ij->i", q, q)
+        if self._pool is None:
+            parts = [self._chunk(q, qn, c) for c in self.chunks]
+        else:
+            parts = list(self._pool.map(lambda c: self._chunk(q, qn, c), self.chunks))
+        if len(parts) == 1:
+            return parts[0]
+        # exact merge: the best two of all chunks' best two, by distance then index
+        idx = np.concatenate([np.stack([p[0], p[2]], 1) for p in parts], axis=1)
+        dist = np.concatenate([np.stack([p[1], p[3]], 1) for p in parts], axis=1)
+        big = np.where(idx >= 0, idx, np.iinfo(np.int64).max)
+        o = np.lexsort((big, dist), axis=-1)[:, :2]
+        r = np.arange(len(q))[:, None]
+        i, d = idx[r, o], dist[r, o]
+        return i[:, 0], d[:, 0], i[:, 1], d[:, 1]
 
 
 def select_matches(i1, dist1, dist2, *, ratio: float | None = 0.8, max_distance: float | None = None,

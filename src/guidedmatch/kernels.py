@@ -68,11 +68,27 @@ def as_exact_uint8(desc: np.ndarray) -> np.ndarray | None:
     """``desc`` as uint8 when every value is an integer in 0..255 (OpenCV SIFT), else None.
 
     Squared L2 of such descriptors is computed exactly in int32 on a quarter of the memory traffic.
+    One pass, stopping at the first value that does not fit.
     """
-    if desc.dtype != np.float32 or desc.size == 0:
+    if desc.dtype != np.float32 or desc.size == 0 or desc.ndim != 2:
         return None
-    u = desc.astype(np.uint8)
-    return u if np.array_equal(u, desc) else None
+    out = np.empty(desc.shape, np.uint8)
+    return out if _to_uint8_exact(np.ascontiguousarray(desc), out) else None
+
+
+@njit(cache=True)
+def _to_uint8_exact(d, out):
+    n, m = d.shape
+    for i in range(n):
+        ok = True
+        for k in range(m):
+            v = d[i, k]
+            u = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
+            out[i, k] = u
+            ok &= np.float32(u) == v
+        if not ok:
+            return False
+    return True
 
 
 def desc_dist(a, b):  # pragma: no cover - replaced by the Numba overload below inside jitted code
@@ -104,25 +120,34 @@ def _push(d, j, b1, j1, b2, j2):
 
 
 # --------------------------------------------------------------------------- dense top-2
-@njit(parallel=True, cache=True)
-def top2_rows(dist_sq):
-    """Per row of a ``(R, C) float32`` squared-distance block: best/second index and squared distance.
+def _top2_gemm_py(dot, nn2, qn, write_back):
+    """Top-2 of every row of squared L2 distances given as a GEMM block.
 
-    Ties keep the lowest column index as best (like ``np.argmin``).
+    ``dot (R, C) float32`` = query·targetᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms. The squared distance
+    ``max((dot * -2 + nn2) + qn, 0)`` is formed element by element in float32 with exactly that rounding order
+    (no fast-math, so no contraction), i.e. bit-identical to the NumPy expression, but in one pass over the
+    block instead of four. With ``write_back`` the distances are also stored into ``dot`` (for column minima).
+    Returns ``(i1, d1, i2, d2)`` (squared distances); ties keep the lowest column index (like ``np.argmin``).
     """
-    r, c = dist_sq.shape
+    r, c = dot.shape
     i1 = np.full(r, -1, np.int64)
     i2 = np.full(r, -1, np.int64)
     d1 = np.full(r, np.inf, np.float32)
     d2 = np.full(r, np.inf, np.float32)
+    m2 = np.float32(-2.0)
+    zero = np.float32(0.0)
     for i in prange(r):
         b1 = np.float32(np.inf)
         b2 = np.float32(np.inf)
         j1 = -1
         j2 = -1
-        row = dist_sq[i]
+        row = dot[i]
+        q = qn[i]
         for j in range(c):
-            b1, j1, b2, j2 = _push(row[j], j, b1, j1, b2, j2)
+            v = max((row[j] * m2 + nn2[j]) + q, zero)
+            if write_back:
+                row[j] = v
+            b1, j1, b2, j2 = _push(v, j, b1, j1, b2, j2)
         i1[i] = j1
         i2[i] = j2
         d1[i] = b1
@@ -174,59 +199,102 @@ def hamming_col_best(q, t):
 
 
 # --------------------------------------------------------------------------- guided candidates
-def build_grid(pts: np.ndarray, cell: float):
-    """Bucket points ``(N, 2)`` into square cells of side ``cell`` px (CSR layout).
+def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | None = None):
+    """Index points ``(N, 2)`` in strips of ``width`` px along ``axis``, bucketed in cells along the other axis.
 
-    Returns ``(origin (2,), ncx, ncy, cell_start (ncx*ncy+1,) int64, cell_items (N,) int64)``; points of
-    cell ``cy * ncx + cx`` are ``cell_items[cell_start[c]:cell_start[c+1]]`` (ascending index).
+    ``axis=0``: vertical strips (x intervals) cut into cells of ``cell`` px in y -- for near-horizontal epipolar
+    lines; ``axis=1``: horizontal strips (y intervals) cut along x -- for near-vertical lines. Points are stored
+    strip by strip, cell by cell, so the points of any run of cells of one strip are contiguous: a band query
+    visits each strip it crosses once, looks up the cells spanned by the band's extent over the strip (two table
+    reads, no search) and scans them, i.e. a superset of the band by about ``1 + (|slope| * width + cell) / band``.
+
+    ``cell`` defaults to ``width / 6``. Both sizes are enlarged when needed so the offset table stays
+    O(N + 4096) entries (aligned coordinates can spread far out).
+
+    Returns the tuple ``S = (u0, nstrips, width, k0, ncells, cell, offsets, items, pts_sorted)``: strip ``s``,
+    cell ``k`` (``u`` in ``[u0 + s*width, ...)``, other coordinate in ``[k0 + k*cell, ...)``) holds rows
+    ``offsets[s*ncells + k] : offsets[s*ncells + k + 1]`` of ``pts_sorted (N,2) float64``, which are image-2
+    features ``items[...]``.
     """
     pts = np.asarray(pts, np.float64).reshape(-1, 2)
-    if len(pts) == 0:
-        return np.zeros(2), 1, 1, np.zeros(2, np.int64), np.zeros(0, np.int64)
-    origin = pts.min(axis=0)
-    span = pts.max(axis=0) - origin
-    ncx = int(span[0] // cell) + 1
-    ncy = int(span[1] // cell) + 1
-    cx = np.minimum(((pts[:, 0] - origin[0]) // cell).astype(np.int64), ncx - 1)
-    cy = np.minimum(((pts[:, 1] - origin[1]) // cell).astype(np.int64), ncy - 1)
-    cid = cy * ncx + cx
-    items = np.argsort(cid, kind="stable").astype(np.int64)
-    start = np.zeros(ncx * ncy + 1, np.int64)
-    np.cumsum(np.bincount(cid, minlength=ncx * ncy), out=start[1:])
-    return origin, ncx, ncy, start, items
+    width = float(width)
+    cell = float(cell) if cell else width / 6.0
+    n = len(pts)
+    if n == 0:
+        return 0.0, 1, width, 0.0, 1, cell, np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+    u, v = pts[:, axis], pts[:, 1 - axis]
+    u0, k0 = float(u.min()), float(v.min())
+    su, sv = float(u.max()) - u0, float(v.max()) - k0
+    budget = 4 * n + 4096
+    width = max(width, su / budget)
+    ns = int(su // width) + 1
+    cell = max(cell, sv * ns / budget)
+    nk = int(sv // cell) + 1
+    sid = np.minimum(((u - u0) // width).astype(np.int64), ns - 1)
+    kid = np.minimum(((v - k0) // cell).astype(np.int64), nk - 1)
+    items, offsets = counting_order(sid * nk + kid, ns * nk)
+    return u0, ns, width, k0, nk, cell, offsets, items, np.ascontiguousarray(pts[items])
+
+
+@njit(cache=True)
+def counting_order(key, nbins):
+    """Stable counting sort of ``key (N,)`` ints in ``[0, nbins)``: ``(order (N,), offsets (nbins+1,))``.
+
+    ``order`` lists indices by key, ties in index order; bin ``b`` is ``order[offsets[b]:offsets[b+1]]``. O(N + nbins).
+    """
+    n = key.shape[0]
+    offsets = np.zeros(nbins + 1, np.int64)
+    for i in range(n):
+        offsets[key[i] + 1] += 1
+    for b in range(nbins):
+        offsets[b + 1] += offsets[b]
+    pos = offsets[:nbins].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[pos[key[i]]] = i
+        pos[key[i]] += 1
+    return order, offsets
 
 
 @njit(inline="always", cache=True)
-def _scan_cell(c, qd, desc2, pts2, lines_q, use_band, band, lo, hi, start, items, b1, j1, b2, j2, cnt):
-    # desc2 / pts2 are stored in cell order (row p belongs to feature items[p]) so a cell is contiguous in memory
-    a = lines_q[0]
-    b = lines_q[1]
-    cc = lines_q[2]
-    for p in range(start[c], start[c + 1]):
-        x = pts2[p, 0]
-        if x < lo or x > hi:
-            continue
-        if use_band and abs(a * x + b * pts2[p, 1] + cc) > band:
-            continue
-        j = items[p]
-        d = desc_dist(qd, desc2[p])
-        cnt += 1
-        b1, j1, b2, j2 = _push(d, j, b1, j1, b2, j2)
+def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1, b2, j2, cnt):
+    # all points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the region
+    # predicate lo <= x <= hi and |a x + b y + c| <= band ([kmin, kmax] only limits the scan)
+    k0 = S[3]
+    nk = S[4]
+    h = S[5]
+    if kmax < k0 or kmin > k0 + nk * h:
+        return b1, j1, b2, j2, cnt
+    c0 = 0 if kmin <= k0 else min(int((kmin - k0) // h), nk - 1)
+    c1 = nk - 1 if kmax >= k0 + nk * h else min(int((kmax - k0) // h), nk - 1)
+    offsets, items, ps = S[6], S[7], S[8]
+    a = lq[0]
+    b = lq[1]
+    c = lq[2]
+    for p in range(offsets[s * nk + c0], offsets[s * nk + c1 + 1]):
+        x = ps[p, 0]
+        if x >= lo and x <= hi and (not use_band or abs(a * x + b * ps[p, 1] + c) <= band):
+            j = items[p]
+            d = desc_dist(qd, desc2[j])
+            cnt += 1
+            b1, j1, b2, j2 = _push(d, j, b1, j1, b2, j2)
     return b1, j1, b2, j2, cnt
 
 
-def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
-                origin, cell, ncx, ncy, start, items):
-    """Best two candidates of each query among image-2 features in its search region.
+def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows):
+    """Best two candidates of each query among the image-2 features of its search region.
 
-    ``desc2`` and ``pts2`` must be in cell order (``desc2[p]`` is feature ``items[p]``, see :func:`build_grid`);
-    returned indices are original feature indices. The region of query ``q`` is ``{j : xlo[q] <= pts2[j,0] <= xhi[q]}`` (spatial-order x-range) and, when
-    ``use_band``, ``|lines[q] . (pts2[j], 1)| <= band`` (epipolar band; lines normalized so a^2+b^2=1).
-    All coordinates are the (aligned) image-2 coordinates the grid was built on. Only grid cells the
-    region can touch are visited: columns when the line is closer to horizontal, rows otherwise.
+    The region of query ``q`` (image-1 feature ``queries[q]``) is ``{j : xlo[q] <= x_j <= xhi[q]}`` (the
+    spatial-order x-range) and, when ``use_band``, ``|lines[q] . (x_j, y_j, 1)| <= band`` (the epipolar band;
+    lines scaled to a^2+b^2 = 1); ``(x_j, y_j)`` are the (aligned) image-2 coordinates the strip structures were
+    built on (:func:`build_strips`): ``cols`` (``axis=0``) serves queries whose line is closer to horizontal and
+    queries without band, ``rows`` (``axis=1``) the others (it may be a dummy ``build_strips(empty)`` when no
+    such query exists). Only strips the region can touch are visited, and in each only the cells spanned by the
+    band's extent; the predicate above is then tested exactly per scanned point.
 
-    Returns ``(i1, d1, i2, d2, ncand)``; ``d`` are raw ``desc_dist`` values (squared L2 or Hamming) and
-    ``ncand[q]`` is the exact number of descriptor distances evaluated for query ``q``.
+    ``desc1``/``desc2``: float32 rows (squared L2), uint8 byte-valued rows (exact squared L2) or uint64 words
+    (Hamming). Returns ``(i1, d1, i2, d2, ncand)`` with original image-2 indices, raw ``desc_dist`` values, and
+    ``ncand[q]`` = the exact number of descriptor distances evaluated for query ``q``.
     """
     nq = queries.shape[0]
     i1 = np.full(nq, -1, np.int64)
@@ -234,18 +302,21 @@ def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
     d1 = np.full(nq, np.inf, np.float32)
     d2 = np.full(nq, np.inf, np.float32)
     ncand = np.zeros(nq, np.int64)
-    gx0 = origin[0]
-    gy0 = origin[1]
-    gx1 = gx0 + ncx * cell
-    gy1 = gy0 + ncy * cell
-    eps = 1e-9
+    w = cols[2]
+    gx0 = cols[0]
+    gx1 = gx0 + cols[1] * w
+    wr = rows[2]
+    gy0 = rows[0]
+    gy1 = gy0 + rows[1] * wr
+    eps = 1e-7
     for q in prange(nq):
         qd = desc1[queries[q]]
         lo = xlo[q]
         hi = xhi[q]
-        a = lines[q, 0]
-        b = lines[q, 1]
-        c = lines[q, 2]
+        lq = lines[q]
+        a = lq[0]
+        b = lq[1]
+        c = lq[2]
         b1 = np.float32(np.inf)
         b2 = np.float32(np.inf)
         j1 = -1
@@ -253,63 +324,57 @@ def guided_top2(queries, desc1, desc2, pts2, lines, use_band, band, xlo, xhi,
         cnt = 0
         xa = max(lo, gx0)
         xb = min(hi, gx1)
-        if xa > xb:
-            continue
-        cx_lo = int((xa - gx0) // cell)
-        cx_hi = min(int((xb - gx0) // cell), ncx - 1)
-        if not use_band:
-            for cx in range(cx_lo, cx_hi + 1):
-                for cy in range(ncy):
-                    b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], False, band, lo, hi,
-                                                     start, items, b1, j1, b2, j2, cnt)
-        elif abs(b) >= abs(a):
-            # mostly horizontal line: walk columns, rows limited to the band around the line
-            m = band / abs(b) + eps
-            for cx in range(cx_lo, cx_hi + 1):
-                u0 = gx0 + cx * cell
-                u1 = u0 + cell
-                ya = -(a * u0 + c) / b
-                yb = -(a * u1 + c) / b
-                ymin = min(ya, yb) - m
-                ymax = max(ya, yb) + m
-                if ymax < gy0 or ymin > gy1:
-                    continue
-                cy_lo = max(0, int((ymin - gy0) // cell))
-                cy_hi = min(ncy - 1, int((ymax - gy0) // cell))
-                for cy in range(cy_lo, cy_hi + 1):
-                    b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], True, band, lo, hi,
-                                                     start, items, b1, j1, b2, j2, cnt)
+        if xa > xb or cols[7].shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
+            continue  # empty x-range, no image-2 points, or undefined epipolar line (query at the epipole)
+        if not use_band or abs(b) >= abs(a):
+            # vertical strips sorted by y; the band's y-extent over the strip's x-interval bounds the scan
+            m = band / abs(b) if use_band else 0.0
+            s_lo = int((xa - gx0) // w)
+            s_hi = min(int((xb - gx0) // w), cols[1] - 1)
+            for s in range(s_lo, s_hi + 1):
+                if use_band:
+                    u0 = max(gx0 + s * w, xa)
+                    u1 = min(gx0 + (s + 1) * w, xb)
+                    ya = -(a * u0 + c) / b
+                    yb = -(a * u1 + c) / b
+                    kmin = min(ya, yb) - m
+                    kmax = max(ya, yb) + m
+                    kmin -= eps * (1.0 + abs(kmin))
+                    kmax += eps * (1.0 + abs(kmax))
+                else:
+                    kmin = -np.inf
+                    kmax = np.inf
+                b1, j1, b2, j2, cnt = _scan_strip(cols, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi,
+                                                  b1, j1, b2, j2, cnt)
         else:
-            # mostly vertical line: walk rows, columns limited to the band and the x-range
-            m = band / abs(a) + eps
+            # horizontal strips sorted by x; rows limited to where the band can meet x in [lo, hi]
+            m = band / abs(a)
             ry0 = gy0
             ry1 = gy1
             if abs(b) > 1e-12 and np.isfinite(lo) and np.isfinite(hi):
-                # rows where the band can meet x in [lo, hi]
                 t1 = (-a * lo - c - band) / b
                 t2 = (-a * lo - c + band) / b
                 t3 = (-a * hi - c - band) / b
                 t4 = (-a * hi - c + band) / b
-                ry0 = max(gy0, min(min(t1, t2), min(t3, t4)) - eps)
-                ry1 = min(gy1, max(max(t1, t2), max(t3, t4)) + eps)
+                ry0 = max(gy0, min(min(t1, t2), min(t3, t4)) - eps * (1.0 + abs(gy0) + abs(gy1)))
+                ry1 = min(gy1, max(max(t1, t2), max(t3, t4)) + eps * (1.0 + abs(gy0) + abs(gy1)))
             if ry0 > ry1:
                 continue
-            cy_lo = max(0, int((ry0 - gy0) // cell))
-            cy_hi = min(ncy - 1, int((ry1 - gy0) // cell))
-            for cy in range(cy_lo, cy_hi + 1):
-                v0 = gy0 + cy * cell
-                v1 = v0 + cell
+            r_lo = max(0, int((ry0 - gy0) // wr))
+            r_hi = min(rows[1] - 1, int((ry1 - gy0) // wr))
+            for r in range(r_lo, r_hi + 1):
+                v0 = gy0 + r * wr
+                v1 = v0 + wr
                 xa2 = -(b * v0 + c) / a
                 xb2 = -(b * v1 + c) / a
-                xmin = max(min(xa2, xb2) - m, xa)
-                xmax = min(max(xa2, xb2) + m, xb)
-                if xmin > xmax:
+                kmin = max(min(xa2, xb2) - m, lo)
+                kmax = min(max(xa2, xb2) + m, hi)
+                kmin -= eps * (1.0 + abs(kmin))
+                kmax += eps * (1.0 + abs(kmax))
+                if kmin > kmax:
                     continue
-                c_lo = max(0, int((xmin - gx0) // cell))
-                c_hi = min(ncx - 1, int((xmax - gx0) // cell))
-                for cx in range(c_lo, c_hi + 1):
-                    b1, j1, b2, j2, cnt = _scan_cell(cy * ncx + cx, qd, desc2, pts2, lines[q], True, band, lo, hi,
-                                                     start, items, b1, j1, b2, j2, cnt)
+                b1, j1, b2, j2, cnt = _scan_strip(rows, r, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi,
+                                                  b1, j1, b2, j2, cnt)
         i1[q] = j1
         i2[q] = j2
         d1[q] = b1
@@ -326,9 +391,30 @@ def _renamed(fn, name):
 
 
 _FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
-_guided_py = guided_top2
+#: fused GEMM post-processing + top-2, parallel over rows (large blocks)
+top2_gemm = njit(parallel=True, cache=True)(_top2_gemm_py)
+#: the same single-threaded, for blocks of a few rows right after a BLAS call: OpenBLAS's threads keep spinning
+#: for a while after a multi-threaded GEMM, and a Numba thread pool started then fights them for the 2 cores
+top2_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_top2_gemm_py, "top2_gemm_serial"))
 #: parallel over queries (final pass)
-guided_top2 = njit(parallel=True, cache=True, fastmath=_FASTMATH)(_guided_py)
+_guided_par = njit(parallel=True, cache=True, fastmath=_FASTMATH)(_guided_py)
 #: the same kernel single-threaded, for small batches: waking a thread pool per 64-query batch between BLAS
 #: calls costs more than it saves on 2 cores (the BLAS and Numba pools contend)
-guided_top2_serial = njit(parallel=False, cache=True, fastmath=_FASTMATH)(_renamed(_guided_py, "guided_top2_serial"))
+_guided_ser = njit(parallel=False, cache=True, fastmath=_FASTMATH)(_renamed(_guided_py, "guided_top2_serial"))
+PARALLEL_MIN_QUERIES = 2048  # fewer queries run single-threaded
+
+
+def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows):
+    queries = np.ascontiguousarray(queries, np.int64)
+    lines = np.ascontiguousarray(lines, np.float64).reshape(-1, 3)
+    if len(lines) != len(queries) or len(xlo) != len(queries) or len(xhi) != len(queries):
+        raise ValueError("queries, lines, xlo and xhi must have the same length")
+    if use_band and len(cols[7]) and not len(rows[7]):
+        if np.any(np.abs(lines[:, 0]) > np.abs(lines[:, 1])):
+            raise ValueError("near-vertical epipolar lines need the row strips (build_strips(pts, width, axis=1))")
+    kernel = _guided_par if len(queries) >= PARALLEL_MIN_QUERIES else _guided_ser
+    return kernel(queries, desc1, desc2, lines, bool(use_band), float(band), np.asarray(xlo, np.float64),
+                  np.asarray(xhi, np.float64), cols, rows)
+
+
+guided_top2.__doc__ = _guided_py.__doc__

@@ -50,7 +50,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import kernels
-from .bruteforce import check_descriptors, knn2, match_bruteforce
+from .bruteforce import DenseKnn2, check_descriptors, knn2, match_bruteforce
+from .epipolar import map_points
 from .results import MatchResult, empty_pairs
 
 MODES = ("bf", "epi", "so", "so+epi", "so+epi+ia")
@@ -78,7 +79,8 @@ class MatcherConfig:
     so_overlap: str = "k1d"              # overlap-window search of the SO model: k1d|k2d|none (Talker §4.3)
     so_probability: str = "gaussian"     # correctness probability: gaussian (Talker fast) | exact (hypergeometric)
     batch_size: int = 64                 # queries per mini-batch in the progressive phase
-    cell_px: float | None = None         # spatial grid cell of image-2 features (default max(4*band, 16) px)
+    strip_px: float | None = None        # width of the strips indexing image-2 features for the candidate kernel
+                                         # (default max(6*band, 24) px; only speed depends on it)
     recheck: bool = True                 # beyond the paper: re-test early matches against the final models
     outside_window: str = "band"         # image-1 feature outside the SO window ω*: "drop" (paper §III-B.2) or, when an
                                          # F model exists and the feature lies within the x-extent of the F inliers,
@@ -105,9 +107,8 @@ class _Models:
     so: object | None = None                  # SpatialOrderModel when usable
     pts1a: np.ndarray | None = None           # aligned image-1 keypoints (N1, 2)
     pts2a: np.ndarray | None = None           # aligned image-2 keypoints (N2, 2)
-    grid: tuple | None = None
-    desc2_cells: np.ndarray | None = None     # image-2 descriptors permuted into grid-cell order
-    pts2_cells: np.ndarray | None = None      # aligned image-2 keypoints in grid-cell order
+    cols: tuple | None = None                 # kernels.build_strips(pts2a, axis=0): x strips sorted by y
+    rows: tuple | None = None                 # the same along y (built on first use by a near-vertical line)
     info: dict = field(default_factory=dict)
 
     @property
@@ -121,7 +122,7 @@ def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x
 
     Returns ``(keep, lo, hi, lines, rescued)``: ``keep (Q,)`` feature inside the overlap window ω* (or rescued),
     ``[lo, hi]`` the admissible aligned image-2 x-range (±inf without a spatial-order model), ``lines (Q,3)`` the
-    aligned epipolar lines scaled to a²+b²=1 (None without F; a query at the epipole gets ``[0, 0, 1]``, which
+    aligned epipolar lines scaled to a²+b²=1 (None without F; a query at the epipole gets ``[0, 0, inf]``, which
     matches nothing), ``rescued (Q,)`` features outside ω* kept for band-only matching because they lie inside
     ``inlier_x1_range`` (``outside_window="band"`` with an F model).
     """
@@ -139,10 +140,10 @@ def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x
             lo[rescued], hi[rescued] = -np.inf, np.inf
     lines = None
     if F_aligned is not None:
-        lines = np.c_[pts1a, np.ones(nq)] @ F_aligned.T
+        lines = map_points(F_aligned, pts1a)  # element-wise, no BLAS threads (see map_points)
         nrm = np.hypot(lines[:, 0], lines[:, 1])
         bad = ~(nrm > 1e-12)
-        lines[bad] = [0.0, 0.0, 1.0]
+        lines[bad] = [0.0, 0.0, np.inf]
         nrm[bad] = 1.0
         lines = np.ascontiguousarray(lines / nrm[:, None])
     return keep, lo, hi, lines, rescued
@@ -291,6 +292,8 @@ class _Run:
         self.phase_queries: dict[int, int] = {}
         self.phase_comparisons: dict[int, int] = {}
         self.guidance: GuidanceModels | None = None
+        self.no_strips = kernels.build_strips(np.zeros((0, 2)), 1.0)
+        self.strip_px = float(config.strip_px or max(6.0 * config.band_px, 24.0))
 
     def account(self, nq: int, ncomp: int) -> None:
         k = len(self.updates)
@@ -308,16 +311,18 @@ class _Run:
         w = max(float(self.f1.image_size[0]), float(x.max()) + 1 if n1 else 1.0)
         g = np.clip((x / w * self.c.num_groups).astype(np.int64), 0, self.c.num_groups - 1)
         if self.f1.responses is not None and np.any(self.f1.responses != self.f1.responses[0]):
-            key = -self.f1.responses.astype(np.float64)
+            key = -self.f1.responses.astype(np.float32)
         else:
-            key = np.random.default_rng(self.c.seed).random(n1)
+            key = np.random.default_rng(self.c.seed).random(n1, np.float32)
+        by_key = _argsort_f32(key)
+        # stable counting sort by group keeps the key order inside each group
+        order_g, offsets = kernels.counting_order(g[by_key], self.c.num_groups)
+        order_g = by_key[order_g]
         within = np.empty(n1, np.int64)
-        order_g = np.lexsort((key, g))  # by group, then key
-        gs = g[order_g]
-        first = np.r_[0, np.flatnonzero(np.diff(gs)) + 1]
-        starts = np.repeat(first, np.diff(np.r_[first, n1]))
-        within[order_g] = np.arange(n1) - starts
-        return np.lexsort((g, within))  # round-robin: rank within group, then group
+        within[order_g] = np.arange(n1) - np.repeat(offsets[:-1], np.diff(offsets))  # rank inside the group
+        # round-robin: rank within group, then group (a stable sort of within * G + g, done by counting)
+        rr, _ = kernels.counting_order(within * self.c.num_groups + g, (int(within.max()) + 1) * self.c.num_groups)
+        return rr
 
     def select(self, queries, i1, s1, s2, ncand):
         """Ratio / single-candidate / max-distance selection; returns accepted (q, j, dist, single) arrays."""
@@ -334,17 +339,21 @@ class _Run:
             keep &= dist1 <= c.max_distance
         return queries[keep], i1[keep], dist1[keep].astype(np.float32), single[keep]
 
-    def bf_batch(self, queries):
-        if self.d2_sqnorms is None and not self.binary:
-            self.d2_sqnorms = np.einsum("ij,ij->i", self.d2, self.d2)
-        (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
+    def bf_batch(self, queries, dense: "DenseKnn2 | None" = None):
+        """Exact 2-NN of ``queries`` over all of image 2 (``dense``: the progressive phase's batch searcher)."""
+        if dense is not None and not self.binary:
+            i1, s1, _i2, s2 = dense.query(self.d1[queries])  # squared distances
+        else:
+            if self.d2_sqnorms is None and not self.binary:
+                self.d2_sqnorms = np.einsum("ij,ij->i", self.d2, self.d2)
+            (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
+            # knn2 returns L2 distances; convert back to the kernel's squared form for select()
+            if not self.binary:
+                s1, s2 = s1 * s1, s2 * s2
         n2 = len(self.d2)
         self.account(len(queries), len(queries) * n2)
         nc = np.full(len(queries), n2, np.int64)
         self.ncand.append(nc)
-        # knn2 returns L2 distances; convert back to the kernel's squared form for select()
-        if not self.binary:
-            s1, s2 = s1 * s1, s2 * s2
         return self.select(queries, i1, s1, s2, nc)
 
     def regions(self, m: _Models, queries):
@@ -360,13 +369,14 @@ class _Run:
             lines = np.zeros((len(queries), 3))
         q = queries[keep]
         lines, lo, hi = lines[keep], lo[keep], hi[keep]
-        # process queries in image-1 position order: neighbours share candidate cells, which stay in cache
+        # process queries in image-1 position order: neighbours share candidate strips, which stay in cache
         o = np.lexsort((m.pts1a[q, 1], m.pts1a[q, 0]))
-        origin, ncx, ncy, start, items, cell = m.grid
-        kernel = kernels.guided_top2 if len(q) >= 2048 else kernels.guided_top2_serial
-        i1, s1, _i2, s2, nc = kernel(q[o], self.kdesc1, m.desc2_cells, m.pts2_cells, lines[o],
-                                                  m.F is not None, float(self.c.band_px), lo[o], hi[o], origin,
-                                                  float(cell), int(ncx), int(ncy), start, items)
+        use_band = m.F is not None
+        if use_band and m.rows is None and np.any(np.abs(lines[:, 0]) > np.abs(lines[:, 1])):
+            m.rows = kernels.build_strips(m.pts2a, self.strip_px, axis=1)
+        rows = m.rows if m.rows is not None else self.no_strips
+        i1, s1, _i2, s2, nc = kernels.guided_top2(q[o], self.kdesc1, self.kdesc2, lines[o], use_band,
+                                                  float(self.c.band_px), lo[o], hi[o], m.cols, rows)
         inv = np.empty_like(o)
         inv[o] = np.arange(len(o))
         i1, s1, s2, nc = i1[inv], s1[inv], s2[inv], nc[inv]
@@ -438,11 +448,7 @@ class _Run:
             else:
                 self.fallback("spatial_order", f"spatial-order model unusable ({so.reason}); "
                               + ("epipolar band only" if m.F is not None else "unguided"))
-        cell = float(c.cell_px or max(4.0 * c.band_px, 16.0))
-        m.grid = (*kernels.build_grid(m.pts2a, cell), cell)
-        items = m.grid[4]
-        m.desc2_cells = np.ascontiguousarray(self.kdesc2[items])  # descriptors in cell order (contiguous cells)
-        m.pts2_cells = np.ascontiguousarray(m.pts2a[items])
+        m.cols = kernels.build_strips(m.pts2a, self.strip_px, axis=0)
         m.info = info
         if m.H2 is not None and not np.allclose(m.H2, np.eye(3)):
             info["alignment_scale"] = _local_scale_range(m.H2, k2)
@@ -463,23 +469,30 @@ class _Run:
         ptr = 0
         if n2 == 0:
             order = order[:0]
-        while ptr < len(order) and len(self.updates) < c.num_updates:
-            batch = order[ptr: ptr + c.batch_size]
-            ptr += len(batch)
-            t0 = time.perf_counter()
-            if models.guided:
-                q, j, d, s = self.guided_batch(models, batch)
-                self.timing["guided_progressive_s"] += time.perf_counter() - t0
-            else:
-                q, j, d, s = self.bf_batch(batch)
-                self.timing["initial_bf_s"] += time.perf_counter() - t0
-            acc_q.append(q); acc_j.append(j); acc_d.append(d); acc_single.append(s)
-            acc_phase.append(np.full(len(q), len(self.updates), np.int64))
-            since += len(q)
-            total += len(q)
-            if since >= c.update_every and total >= c.min_model_matches:
-                since = 0
-                models = self.fit(np.concatenate(acc_q), np.concatenate(acc_j))
+        dense = None
+        try:
+            while ptr < len(order) and len(self.updates) < c.num_updates:
+                batch = order[ptr: ptr + c.batch_size]
+                ptr += len(batch)
+                t0 = time.perf_counter()
+                if models.guided:
+                    q, j, d, s = self.guided_batch(models, batch)
+                    self.timing["guided_progressive_s"] += time.perf_counter() - t0
+                else:
+                    if dense is None and not self.binary:
+                        dense = DenseKnn2(self.d2).__enter__()
+                    q, j, d, s = self.bf_batch(batch, dense)
+                    self.timing["initial_bf_s"] += time.perf_counter() - t0
+                acc_q.append(q); acc_j.append(j); acc_d.append(d); acc_single.append(s)
+                acc_phase.append(np.full(len(q), len(self.updates), np.int64))
+                since += len(q)
+                total += len(q)
+                if since >= c.update_every and total >= c.min_model_matches:
+                    since = 0
+                    models = self.fit(np.concatenate(acc_q), np.concatenate(acc_j))
+        finally:
+            if dense is not None:
+                dense.__exit__(None, None, None)
         if len(self.updates) < c.num_updates and n1:
             self.fallback("updates", f"only {len(self.updates)} of {c.num_updates} model updates: "
                           f"{total} correspondences from all {n1} features (need {c.update_every} per update)")
@@ -570,11 +583,20 @@ class _Run:
         return MatchResult(pairs, d, stats, flags)
 
 
+def _argsort_f32(key: np.ndarray) -> np.ndarray:
+    """Stable ascending argsort of float32 ``key`` (ties by index) through one SIMD sort of unique uint64 keys
+    (order-preserving float bits << 32 | index); 5x faster than NumPy's stable float sort at 40k."""
+    b = np.ascontiguousarray(key, np.float32).view(np.uint32).astype(np.uint64)
+    b = np.where(b >> np.uint64(31), ~b & np.uint64(0xFFFFFFFF), b | np.uint64(0x80000000))
+    comp = (b << np.uint64(32)) | np.arange(len(b), dtype=np.uint64)
+    return (np.sort(comp) & np.uint64(0xFFFFFFFF)).astype(np.int64)
+
+
 def _local_scale_range(H: np.ndarray, pts: np.ndarray) -> tuple[float, float]:
     """Min/max of sqrt|det J| of the homography at ``pts`` (how H2 stretches distances there)."""
     if len(pts) == 0:
         return (1.0, 1.0)
-    p = np.c_[pts, np.ones(len(pts))] @ H.T
+    p = map_points(H, pts)
     w = p[:, 2]
     # det of the Jacobian of a homography at x: det(H) / w^3
     s = np.sqrt(np.abs(np.linalg.det(H) / w**3))
