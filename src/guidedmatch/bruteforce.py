@@ -18,6 +18,7 @@ index is the nearest neighbour.
 """
 from __future__ import annotations
 
+import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -107,6 +108,14 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     return out, col
 
 
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """One ``threadpoolctl.ThreadpoolController`` per process (inspecting the loaded libraries takes ~2 ms)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
 class DenseKnn2:
     """Exact 2-NN of successive small query batches against one fixed float descriptor set (``(N2, D)``).
 
@@ -135,9 +144,7 @@ class DenseKnn2:
         self._limit = None
 
     def __enter__(self) -> "DenseKnn2":
-        from threadpoolctl import threadpool_limits
-
-        self._limit = threadpool_limits(limits=1, user_api="blas")
+        self._limit = _blas_controller().limit(limits=1, user_api="blas")
         if len(self.chunks) > 1:
             self._pool = ThreadPoolExecutor(len(self.chunks), thread_name_prefix="guidedmatch-knn2")
         return self

@@ -79,8 +79,8 @@ class MatcherConfig:
     so_overlap: str = "k1d"              # overlap-window search of the SO model: k1d|k2d|none (Talker §4.3)
     so_probability: str = "gaussian"     # correctness probability: gaussian (Talker fast) | exact (hypergeometric)
     batch_size: int = 64                 # queries per mini-batch in the progressive phase
-    strip_px: float | None = None        # width of the strips indexing image-2 features for the candidate kernel
-                                         # (default max(6*band, 24) px; only speed depends on it)
+    strip_px: float | None = None        # width of the strips indexing image-2 features for the candidate kernel;
+                                         # None: chosen from the lines' slopes and the point density (speed only)
     recheck: bool = True                 # beyond the paper: re-test early matches against the final models
     outside_window: str = "band"         # image-1 feature outside the SO window ω*: "drop" (paper §III-B.2) or, when an
                                          # F model exists and the feature lies within the x-extent of the F inliers,
@@ -107,8 +107,8 @@ class _Models:
     so: object | None = None                  # SpatialOrderModel when usable
     pts1a: np.ndarray | None = None           # aligned image-1 keypoints (N1, 2)
     pts2a: np.ndarray | None = None           # aligned image-2 keypoints (N2, 2)
-    cols: tuple | None = None                 # kernels.build_strips(pts2a, axis=0): x strips sorted by y
-    rows: tuple | None = None                 # the same along y (built on first use by a near-vertical line)
+    cols: tuple | None = None                 # kernels.build_strips(pts2a, axis=0): x strips cut into y cells
+    rows: tuple | None = None                 # the same along y (both built on first use)
     info: dict = field(default_factory=dict)
 
     @property
@@ -293,7 +293,6 @@ class _Run:
         self.phase_comparisons: dict[int, int] = {}
         self.guidance: GuidanceModels | None = None
         self.no_strips = kernels.build_strips(np.zeros((0, 2)), 1.0)
-        self.strip_px = float(config.strip_px or max(6.0 * config.band_px, 24.0))
 
     def account(self, nq: int, ncomp: int) -> None:
         k = len(self.updates)
@@ -361,6 +360,28 @@ class _Run:
         return search_regions(m.pts1a[queries], m.so, m.info.get("F_aligned"), m.info.get("inlier_x1_range"),
                               self.c.outside_window)
 
+    def strips(self, m: _Models, lines: np.ndarray, axis: int):
+        """Strip index of the aligned image-2 points for lines mostly along ``axis`` (0: horizontal-ish).
+
+        Strip width ``w = sqrt(6 / (rho * s))`` (clipped to [4 band, 256] px) balances the per-strip cost (a visit,
+        a loop exit) against the points scanned outside the band in each strip (``rho * s * w`` per unit length;
+        ``rho`` = image-2 points per px² of their bounding box, ``s`` = median |slope| of the lines against the
+        strip direction); the constant 6 is from Herz-Jesus 0002/0003 (flat optimum 96-192 px at s = 0.07).
+        Cells along the strip are band/2 high.
+        """
+        band = float(self.c.band_px)
+        if self.c.strip_px:
+            w = float(self.c.strip_px)
+        elif len(lines) == 0 or m.F is None:
+            w = 64.0
+        else:
+            x, y = m.pts2a[:, 0], m.pts2a[:, 1]  # (per-column min/max: np.ptp(axis=0) on (N, 2) is 10x slower)
+            area = (x.max() - x.min()) * (y.max() - y.min()) if len(x) else 1.0
+            rho = len(x) / max(float(area), 1.0)
+            s = float(np.median(np.abs(lines[:, axis]) / np.maximum(np.abs(lines[:, 1 - axis]), 1e-12)))
+            w = float(np.clip(np.sqrt(6.0 / max(rho * max(s, 1e-3), 1e-12)), 4.0 * band, 256.0))
+        return kernels.build_strips(m.pts2a, max(w, 1e-3), axis, max(band / 2.0, 0.5))
+
     def guided_batch(self, m: _Models, queries):
         keep, lo, hi, lines, rescued = self.regions(m, queries)
         self.dropped_outside_overlap += int((~keep).sum())
@@ -369,11 +390,15 @@ class _Run:
             lines = np.zeros((len(queries), 3))
         q = queries[keep]
         lines, lo, hi = lines[keep], lo[keep], hi[keep]
-        # process queries in image-1 position order: neighbours share candidate strips, which stay in cache
-        o = np.lexsort((m.pts1a[q, 1], m.pts1a[q, 0]))
+        # process queries in image-1 position order (32 px cells row by row): neighbours share candidates, which stay
+        # in cache; the order changes nothing but speed
+        o = _cell_order(m.pts1a[q], 32.0)
         use_band = m.F is not None
-        if use_band and m.rows is None and np.any(np.abs(lines[:, 0]) > np.abs(lines[:, 1])):
-            m.rows = kernels.build_strips(m.pts2a, self.strip_px, axis=1)
+        vertical = np.abs(lines[:, 0]) > np.abs(lines[:, 1]) if use_band else np.zeros(len(q), bool)
+        if m.cols is None:
+            m.cols = self.strips(m, lines[~vertical], 0)
+        if m.rows is None and vertical.any():
+            m.rows = self.strips(m, lines[vertical], 1)
         rows = m.rows if m.rows is not None else self.no_strips
         i1, s1, _i2, s2, nc = kernels.guided_top2(q[o], self.kdesc1, self.kdesc2, lines[o], use_band,
                                                   float(self.c.band_px), lo[o], hi[o], m.cols, rows)
@@ -448,7 +473,6 @@ class _Run:
             else:
                 self.fallback("spatial_order", f"spatial-order model unusable ({so.reason}); "
                               + ("epipolar band only" if m.F is not None else "unguided"))
-        m.cols = kernels.build_strips(m.pts2a, self.strip_px, axis=0)
         m.info = info
         if m.H2 is not None and not np.allclose(m.H2, np.eye(3)):
             info["alignment_scale"] = _local_scale_range(m.H2, k2)
@@ -581,6 +605,21 @@ class _Run:
             fallbacks=self.fallbacks, config=dataclasses.asdict(self.c),
         )
         return MatchResult(pairs, d, stats, flags)
+
+
+def _cell_order(pts: np.ndarray, cell: float) -> np.ndarray:
+    """Indices of ``pts (N,2)`` ordered by square cells of ``cell`` px, row by row (counting sort, O(N))."""
+    n = len(pts)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    x, y = pts[:, 0], pts[:, 1]
+    x0, y0 = float(x.min()), float(y.min())
+    # at most 4097 columns and n/1024 + 1 rows: the bin table stays O(n) however far the points spread
+    cell = max(cell, (float(x.max()) - x0) / 4096.0, (float(y.max()) - y0) * 1024.0 / n)
+    nx = int((float(x.max()) - x0) // cell) + 1
+    ny = int((float(y.max()) - y0) // cell) + 1
+    cid = np.minimum(((y - y0) // cell).astype(np.int64), ny - 1) * nx + np.minimum(((x - x0) // cell).astype(np.int64), nx - 1)
+    return kernels.counting_order(cid, nx * ny)[0]
 
 
 def _argsort_f32(key: np.ndarray) -> np.ndarray:

@@ -46,6 +46,7 @@ makes every cell of the (n+1)^2 table O(1). ``var_floor`` is added to Var(H|G) (
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -608,6 +609,16 @@ def bad_inversion_range(left1, n_others, n_good_others):
     return np.maximum(lo, 0.0), np.maximum(h0, h1)
 
 
+@functools.lru_cache(maxsize=16)
+def _hermite_nodes(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Hermite (probabilists') nodes and normalized weights for k points (cached; read-only arrays)."""
+    nodes, weights = np.polynomial.hermite_e.hermegauss(k)
+    weights = weights / weights.sum()
+    nodes.flags.writeable = False
+    weights.flags.writeable = False
+    return nodes, weights
+
+
 def _beta_moments(left, n_others, n_bad, num_beta):
     """Mean and second moment of Talker's k node values of beta ~ Hyp(left draws; n_others, n_bad)."""
     left = np.asarray(left, dtype=np.float64)
@@ -617,8 +628,7 @@ def _beta_moments(left, n_others, n_bad, num_beta):
     mean = left * p
     var = left * p * (1.0 - p) * (no - left) / max(no - 1.0, 1.0)
     sd = np.sqrt(np.maximum(var, 0.0))
-    nodes, weights = np.polynomial.hermite_e.hermegauss(max(int(num_beta), 1))
-    weights = weights / weights.sum()
+    nodes, weights = _hermite_nodes(max(int(num_beta), 1))
     lo_s = np.maximum(0.0, left - (no - nb))[..., None]
     hi_s = np.minimum(left, nb)[..., None]
     b = np.clip(mean[..., None] + sd[..., None] * nodes, lo_s, np.maximum(hi_s, lo_s))
