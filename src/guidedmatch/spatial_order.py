@@ -807,6 +807,18 @@ def gap_probability_table(sigma, n_good, config: SpatialOrderConfig = SpatialOrd
     return p.reshape(n + 1, n + 1)
 
 
+@njit(cache=True, fastmath=True)
+def _row_var_max(m1h, s1h, m2, s2, nb, fm, ca, cb, cc, var_floor):  # pragma: no cover - numba
+    """max over k of the gap kernel's var(h, k) (vectorized; fast-math, so the caller adds a relative margin)."""
+    v = var_floor
+    for k in range(m2.shape[0]):
+        mu = m1h + m2[k] * fm
+        var_mu = max(s1h + ca * m2[k] + cb * s2[k] - mu * mu, 0.0)
+        vh = max(cc * (nb * m2[k] - s2[k]), 0.0)
+        v = max(v, vh + var_mu + var_floor)
+    return v * (1.0 + 1e-6)
+
+
 @njit(cache=True)
 def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th, var_floor,
                 log_out, mean_shift):  # pragma: no cover - numba
@@ -821,6 +833,12 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
     runs = np.empty((cap, 2), dtype=np.int64)
     nr = 0
     half_log_2pi = 0.5 * math.log(2.0 * math.pi)
+    # skipping (exact): along a row, hv(k) = h + k - 2 C[h, k] moves by exactly +-1 per step and mu(k) by at most
+    # |fm| * max|m2[k+1] - m2[k]|, so d = hv - mu is Lipschitz in k; a cell whose |d| exceeds the row's largest
+    # admissible |d| (from an upper bound of var over the row) by x * L proves the next ceil(x) - 1 cells out too.
+    dm2max = 0.0
+    for k in range(n):
+        dm2max = max(dm2max, abs(m2[k + 1] - m2[k]))
     for h in range(n + 1):
         if h > 0:
             s = sigma[h - 1]
@@ -831,34 +849,55 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
         lpb_out = lpb_in + log_out
         # a cell is surely out when the quadratic term alone exceeds this (uses var >= var_floor)
         bound = log_pg - half_log_2pi - 0.5 * math.log(var_floor) - lpb_out - log_odds_th
+        if bound < 0.0:  # q >= 0 > bound: no cell of this row is admissible
+            ptr[h + 1] = nr
+            continue
         in_run = False
-        for k in range(n + 1):
+        # per-row constants of the cell moments (the expressions of _cell_moments expanded in m2[k], s2[k]):
+        # mu = m1 + m2 - 2 m1 m2 / nb; E2 = s1 + A m2 + B s2; vh = C (nb m2 - s2)
+        fm = ca = cb = cc = 0.0
+        var_hi = var_floor
+        lip = 1.0
+        if nb >= 1e-9:
+            inv_nb = 1.0 / nb
+            fm = 1.0 - 2.0 * m1[h] * inv_nb
+            ca = 2.0 * m1[h] - 4.0 * s1[h] * inv_nb
+            cb = 1.0 - 4.0 * m1[h] * inv_nb + 4.0 * s1[h] * inv_nb * inv_nb
+            cc = 2.0 * (nb * m1[h] - s1[h]) * inv_nb * inv_nb / (nb - 1.0) if nb > 1.0 else 0.0
+            var_hi = _row_var_max(m1[h], s1[h], m2, s2, nb, fm, ca, cb, cc, var_floor)
+            lip = 1.0 + abs(fm) * dm2max
+        d_hi = math.sqrt(2.0 * var_hi * bound) * (1.0 + 1e-9) + 1e-9
+        lip *= 1.0 + 1e-9
+        k = 0
+        while k <= n:
             hv = h + k - 2 * crow[k]
             if nb < 1e-9:
                 mu = mean_shift
                 var = var_floor
             else:
-                mu = m1[h] + m2[k] - 2.0 * m1[h] * m2[k] / nb
-                e2 = (s1[h] + s2[k] + 2.0 * m1[h] * m2[k] - 4.0 * (s1[h] * m2[k] + m1[h] * s2[k]) / nb
-                      + 4.0 * s1[h] * s2[k] / (nb * nb))
-                var_mu = e2 - mu * mu
+                mu = m1[h] + m2[k] * fm
+                var_mu = s1[h] + ca * m2[k] + cb * s2[k] - mu * mu
                 if var_mu < 0.0:
                     var_mu = 0.0
-                vh = 0.0
-                if nb > 1.0:
-                    vh = 2.0 * (nb * m1[h] - s1[h]) * (nb * m2[k] - s2[k]) / (nb * nb * (nb - 1.0))
-                    if vh < 0.0:
-                        vh = 0.0
+                vh = cc * (nb * m2[k] - s2[k])
+                if vh < 0.0:
+                    vh = 0.0
                 var = vh + var_mu + var_floor
                 mu += mean_shift
             d = hv - mu
+            # q = d^2 / (2 var) <= bound, tested without the division
+            if d * d > 2.0 * var * bound:
+                in_run = False
+                ad = abs(d)
+                if ad > d_hi:
+                    k += int(math.ceil((ad - d_hi) / lip))  # the skipped cells are out as well
+                else:
+                    k += 1
+                continue
             q = d * d / (2.0 * var)
-            ok = False
-            if q <= bound:
-                lpg = log_pg - half_log_2pi - 0.5 * math.log(var) - q
-                lpb = lpb_in if (hv >= blo[h] and hv <= bhi[h]) else lpb_out
-                ok = lpg - lpb >= log_odds_th
-            if ok:
+            lpg = log_pg - half_log_2pi - 0.5 * math.log(var) - q
+            lpb = lpb_in if (hv >= blo[h] and hv <= bhi[h]) else lpb_out
+            if lpg - lpb >= log_odds_th:
                 count[h] += 1
                 if k < gap_lo[h]:
                     gap_lo[h] = k
@@ -875,6 +914,7 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
                 runs[nr - 1, 1] = k
             else:
                 in_run = False
+            k += 1
         ptr[h + 1] = nr
     return gap_lo, gap_hi, count, ptr, runs[:nr].copy()
 
