@@ -110,8 +110,16 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
 
 @functools.lru_cache(maxsize=1)
 def _blas_controller():
-    """One ``threadpoolctl.ThreadpoolController`` per process (inspecting the loaded libraries takes ~2 ms)."""
+    """One ``threadpoolctl.ThreadpoolController`` per process (inspecting the loaded libraries takes ~2 ms).
+
+    SciPy's BLAS is loaded first (Numba's linear algebra and our geometry use it), so it is limited as well; a BLAS
+    loaded later by other code is not seen by this controller.
+    """
+    import importlib
+
     from threadpoolctl import ThreadpoolController
+
+    importlib.import_module("scipy.linalg")  # loads SciPy's OpenBLAS before the libraries are listed
 
     return ThreadpoolController()
 

@@ -208,8 +208,8 @@ def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | Non
     visits each strip it crosses once, looks up the cells spanned by the band's extent over the strip (two table
     reads, no search) and scans them, i.e. a superset of the band by about ``1 + (|slope| * width + cell) / band``.
 
-    ``cell`` defaults to ``width / 6``. Both sizes are enlarged when needed so the offset table stays
-    O(N + 4096) entries (aligned coordinates can spread far out).
+    ``cell`` defaults to ``width / 6``. Both sizes are enlarged when needed so the offset table has at most
+    ``4 N + 4096`` cells (aligned coordinates can spread far out).
 
     Returns the tuple ``S = (u0, nstrips, width, k0, ncells, cell, offsets, items, pts_sorted)``: strip ``s``,
     cell ``k`` (``u`` in ``[u0 + s*width, ...)``, other coordinate in ``[k0 + k*cell, ...)``) holds rows
@@ -225,10 +225,11 @@ def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | Non
     u, v = pts[:, axis], pts[:, 1 - axis]
     u0, k0 = float(u.min()), float(v.min())
     su, sv = float(u.max()) - u0, float(v.max()) - k0
-    budget = 4 * n + 4096
-    width = max(width, su / budget)
+    budget = 4 * n + 4096  # strips * cells <= budget
+    width = max(width, su / (budget // 4) * (1.0 + 1e-12))  # ns <= budget / 4 + 1, so budget // ns >= 3
     ns = int(su // width) + 1
-    cell = max(cell, sv * ns / budget)
+    kmax = budget // ns
+    cell = max(cell, sv / (kmax - 1) * (1.0 + 1e-12))  # nk <= kmax
     nk = int(sv // cell) + 1
     sid = np.minimum(((u - u0) // width).astype(np.int64), ns - 1)
     kid = np.minimum(((v - k0) // cell).astype(np.int64), nk - 1)
@@ -396,11 +397,17 @@ top2_gemm = njit(parallel=True, cache=True)(_top2_gemm_py)
 #: the same single-threaded, for blocks of a few rows right after a BLAS call: OpenBLAS's threads keep spinning
 #: for a while after a multi-threaded GEMM, and a Numba thread pool started then fights them for the 2 cores
 top2_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_top2_gemm_py, "top2_gemm_serial"))
+# Integer descriptors (uint8 byte-valued L2, uint64 Hamming) need no fast-math, and without it the band test
+# |a x + b y + c| <= band is evaluated with plain IEEE rounding, bit for bit as NumPy does (fast-math would contract
+# it into FMAs and move points lying exactly on the band edge). Float descriptors need 'reassoc' to vectorize the
+# L2 sum, so for them the band test may differ from NumPy's by an ulp at the exact edge.
 #: parallel over queries (final pass)
-_guided_par = njit(parallel=True, cache=True, fastmath=_FASTMATH)(_guided_py)
+_guided_par = njit(parallel=True, cache=True)(_guided_py)
+_guided_par_fm = njit(parallel=True, cache=True, fastmath=_FASTMATH)(_renamed(_guided_py, "guided_top2_fm"))
 #: the same kernel single-threaded, for small batches: waking a thread pool per 64-query batch between BLAS
 #: calls costs more than it saves on 2 cores (the BLAS and Numba pools contend)
-_guided_ser = njit(parallel=False, cache=True, fastmath=_FASTMATH)(_renamed(_guided_py, "guided_top2_serial"))
+_guided_ser = njit(parallel=False, cache=True)(_renamed(_guided_py, "guided_top2_serial"))
+_guided_ser_fm = njit(parallel=False, cache=True, fastmath=_FASTMATH)(_renamed(_guided_py, "guided_top2_serial_fm"))
 PARALLEL_MIN_QUERIES = 2048  # fewer queries run single-threaded
 
 
@@ -412,7 +419,11 @@ def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, ro
     if use_band and len(cols[7]) and not len(rows[7]):
         if np.any(np.abs(lines[:, 0]) > np.abs(lines[:, 1])):
             raise ValueError("near-vertical epipolar lines need the row strips (build_strips(pts, width, axis=1))")
-    kernel = _guided_par if len(queries) >= PARALLEL_MIN_QUERIES else _guided_ser
+    fm = desc1.dtype.kind == "f"
+    if len(queries) >= PARALLEL_MIN_QUERIES:
+        kernel = _guided_par_fm if fm else _guided_par
+    else:
+        kernel = _guided_ser_fm if fm else _guided_ser
     return kernel(queries, desc1, desc2, lines, bool(use_band), float(band), np.asarray(xlo, np.float64),
                   np.asarray(xhi, np.float64), cols, rows)
 
