@@ -9,6 +9,7 @@ compare the ratios (same run), not the absolute numbers.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -75,7 +76,7 @@ def main(argv=None):
         t = r["times_s"]
         print(f"{r['n']:>6} x {r['n']:<6} {t['guidedmatch']:>16.3f} {t['cv2.BFMatcher']:>18.3f} "
               f"{t.get('faiss', float('nan')):>10.3f} {r['speedup_vs_cv2']:>9.2f} {r['matches']:>8}")
-    write_json(args.out, dict(meta=run_metadata(seed=0), command="python benchmarks/bench_bruteforce.py " + " ".join(argv or []), rows=rows))
+    write_json(args.out, dict(meta=run_metadata(seed=0), command="python benchmarks/bench_bruteforce.py " + " ".join(sys.argv[1:] if argv is None else argv), rows=rows))
     print(f"wrote {args.out}")
 
 

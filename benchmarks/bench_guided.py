@@ -21,6 +21,7 @@ Features are cached in --cache (default ~/.cache/guidedmatch) so reruns skip det
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 import tracemalloc
 from pathlib import Path
@@ -156,7 +157,7 @@ def main(argv=None):
           f"(+ {g['kernel_outputs_mb']:.1f} MB kernel outputs); timing {g['timing']}")
     out = Path(args.out)
     write_json(out / "guided.json", dict(meta=run_metadata(seed=0), pair=pair.name,
-                                         command="python benchmarks/bench_guided.py " + " ".join(argv or []), rows=rows))
+                                         command="python benchmarks/bench_guided.py " + " ".join(sys.argv[1:] if argv is None else argv), rows=rows))
     _plot(rows, names, out / "guided_scaling.png")
     print(f"wrote {out / 'guided.json'} and {out / 'guided_scaling.png'}")
 
