@@ -14,14 +14,15 @@ Flow (all modes except ``bf``)
    (within a group strongest response first, else a seeded random order), so the first matches cover
    the whole image width.
 2. **Progressive phase**: drawn features are matched in mini-batches of ``batch_size`` against their
-   current candidate set -- all of image 2 before the first model (blocked GEMM / popcount), the guided
-   region afterwards. Each image-1 feature is matched once. After every ``update_every`` (200) newly
+   current candidate set -- all of image 2 before the first model (:class:`~guidedmatch.bruteforce.DenseKnn2`:
+   GEMM in one single-threaded BLAS chunk per core, or popcount), the guided region afterwards. Each image-1 feature is matched once. After every ``update_every`` (200) newly
    accepted correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3
    times): F by robust RANSAC, the alignment homography from F (mode IA), then the spatial-order model
    on aligned x-coordinates. Because batches are processed whole, an update happens after the batch in
    which the 200th correspondence was accepted (the overshoot is < ``batch_size`` queries).
 3. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized
-   call of the Numba candidate kernel: features outside the overlap window ω* are dropped unmatched;
+   call of the Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the strip index of
+   :func:`~guidedmatch.kernels.build_strips`): features outside the overlap window ω* are dropped unmatched;
    each remaining feature's candidates are the image-2 features in its admissible x-range (aligned
    coordinates) and within ``band_px`` of its epipolar line.
 4. **Re-check** (beyond the paper, ``recheck``): matches accepted before the final model are tested
