@@ -35,11 +35,12 @@ def _git(args: list[str], cwd: Path) -> str | None:
 
 def git_info(repo: str | os.PathLike | None = None) -> dict[str, Any]:
     """``{"commit": sha or None, "dirty": bool or None}`` of the repository (None when not a git checkout
-    or without commits). ``dirty`` = uncommitted changes to tracked files (untracked outputs such as
-    ``reports/`` do not count)."""
+    or without commits). ``dirty`` = uncommitted changes to tracked files other than the benchmark outputs
+    (``reports/``, ``benchmarks/results/``: a rerun overwrites the previous, committed results)."""
     root = Path(repo) if repo is not None else _repo_root()
     commit = _git(["rev-parse", "HEAD"], root)
-    status = _git(["status", "--porcelain", "--untracked-files=no"], root)
+    status = _git(["status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)reports",
+                   ":(exclude)benchmarks/results"], root)
     return {"commit": commit, "dirty": None if status is None else bool(status)}
 
 
