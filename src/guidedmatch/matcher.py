@@ -18,8 +18,9 @@ Flow (all modes except ``bf``)
    GEMM in one single-threaded BLAS chunk per core, or popcount), the guided region afterwards. Each
    image-1 feature is matched once. After every ``update_every`` (200) newly accepted correspondences
    the models are refit on *all* correspondences so far (``num_updates`` = 3 times): F by robust RANSAC,
-   the alignment homography from F (mode IA), then the spatial-order model on aligned x-coordinates. Because batches are processed whole, an update happens after the batch in
-   which the 200th correspondence was accepted (the overshoot is < ``batch_size`` queries).
+   the alignment homography from F (mode IA), then the spatial-order model on aligned x-coordinates.
+   Because batches are processed whole, an update happens after the batch in which the 200th
+   correspondence was accepted (the overshoot is < ``batch_size`` queries).
 3. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized
    call of the Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the strip index of
    :func:`~guidedmatch.kernels.build_strips`): features outside the overlap window ω* are dropped unmatched;
