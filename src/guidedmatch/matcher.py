@@ -45,6 +45,7 @@ brings guided precision back above brute force's (Oxford, 12 pairs, SIFT: 88.9 %
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -392,9 +393,9 @@ class _Run:
             lines = np.zeros((len(queries), 3))
         q = queries[keep]
         lines, lo, hi = lines[keep], lo[keep], hi[keep]
-        # process queries in image-1 position order (32 px cells row by row): neighbours share candidates, which stay
-        # in cache; the order changes nothing but speed
-        o = _cell_order(m.pts1a[q], 32.0)
+        # process queries in image-1 position order (32 px cells row by row: the point order of a row-strip index):
+        # neighbours share candidates, which stay in cache; the order changes nothing but speed
+        o = kernels.build_strips(m.pts1a[q], 32.0, axis=1, cell=32.0)[7]
         use_band = m.F is not None
         vertical = np.abs(lines[:, 0]) > np.abs(lines[:, 1]) if use_band else np.zeros(len(q), bool)
         if m.cols is None:
@@ -496,7 +497,7 @@ class _Run:
         if n2 == 0:
             order = order[:0]
         dense = None
-        try:
+        with contextlib.ExitStack() as stack:  # closes the unguided-phase searcher (restores BLAS threads)
             while ptr < len(order) and len(self.updates) < c.num_updates:
                 batch = order[ptr: ptr + c.batch_size]
                 ptr += len(batch)
@@ -506,7 +507,7 @@ class _Run:
                     self.timing["guided_progressive_s"] += time.perf_counter() - t0
                 else:
                     if dense is None and not self.binary:
-                        dense = DenseKnn2(self.d2).__enter__()
+                        dense = stack.enter_context(DenseKnn2(self.d2))
                     q, j, d, s = self.bf_batch(batch, dense)
                     self.timing["initial_bf_s"] += time.perf_counter() - t0
                 acc_q.append(q); acc_j.append(j); acc_d.append(d); acc_single.append(s)
@@ -516,9 +517,6 @@ class _Run:
                 if since >= c.update_every and total >= c.min_model_matches:
                     since = 0
                     models = self.fit(np.concatenate(acc_q), np.concatenate(acc_j))
-        finally:
-            if dense is not None:
-                dense.__exit__(None, None, None)
         if len(self.updates) < c.num_updates and n1:
             self.fallback("updates", f"only {len(self.updates)} of {c.num_updates} model updates: "
                           f"{total} correspondences from all {n1} features (need {c.update_every} per update)")
@@ -607,21 +605,6 @@ class _Run:
             fallbacks=self.fallbacks, config=dataclasses.asdict(self.c),
         )
         return MatchResult(pairs, d, stats, flags)
-
-
-def _cell_order(pts: np.ndarray, cell: float) -> np.ndarray:
-    """Indices of ``pts (N,2)`` ordered by square cells of ``cell`` px, row by row (counting sort, O(N))."""
-    n = len(pts)
-    if n == 0:
-        return np.zeros(0, np.int64)
-    x, y = pts[:, 0], pts[:, 1]
-    x0, y0 = float(x.min()), float(y.min())
-    # at most 4097 columns and n/1024 + 1 rows: the bin table stays O(n) however far the points spread
-    cell = max(cell, (float(x.max()) - x0) / 4096.0, (float(y.max()) - y0) * 1024.0 / n)
-    nx = int((float(x.max()) - x0) // cell) + 1
-    ny = int((float(y.max()) - y0) // cell) + 1
-    cid = np.minimum(((y - y0) // cell).astype(np.int64), ny - 1) * nx + np.minimum(((x - x0) // cell).astype(np.int64), nx - 1)
-    return kernels.counting_order(cid, nx * ny)[0]
 
 
 def _argsort_f32(key: np.ndarray) -> np.ndarray:
