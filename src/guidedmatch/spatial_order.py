@@ -807,15 +807,26 @@ def gap_probability_table(sigma, n_good, config: SpatialOrderConfig = SpatialOrd
     return p.reshape(n + 1, n + 1)
 
 
+@njit(inline="always", cache=True)
+def _gap_cell_moments(m1h, s1h, m2k, s2k, nb, fm, ca, cb, cc, var_floor):  # pragma: no cover - numba
+    """Mean (without order-noise shift) and variance of H | G in gap cell (h, k) from the per-row constants
+    ``fm, ca, cb, cc`` of :func:`_gap_kernel` (the expressions of :func:`_cell_moments` expanded in m2, s2)."""
+    mu = m1h + m2k * fm
+    var_mu = s1h + ca * m2k + cb * s2k - mu * mu
+    if var_mu < 0.0:
+        var_mu = 0.0
+    vh = cc * (nb * m2k - s2k)
+    if vh < 0.0:
+        vh = 0.0
+    return mu, vh + var_mu + var_floor
+
+
 @njit(cache=True, fastmath=True)
 def _row_var_max(m1h, s1h, m2, s2, nb, fm, ca, cb, cc, var_floor):  # pragma: no cover - numba
     """max over k of the gap kernel's var(h, k) (vectorized; fast-math, so the caller adds a relative margin)."""
     v = var_floor
     for k in range(m2.shape[0]):
-        mu = m1h + m2[k] * fm
-        var_mu = max(s1h + ca * m2[k] + cb * s2[k] - mu * mu, 0.0)
-        vh = max(cc * (nb * m2[k] - s2[k]), 0.0)
-        v = max(v, vh + var_mu + var_floor)
+        v = max(v, _gap_cell_moments(m1h, s1h, m2[k], s2[k], nb, fm, ca, cb, cc, var_floor)[1])
     return v * (1.0 + 1e-6)
 
 
@@ -875,14 +886,7 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
                 mu = mean_shift
                 var = var_floor
             else:
-                mu = m1[h] + m2[k] * fm
-                var_mu = s1[h] + ca * m2[k] + cb * s2[k] - mu * mu
-                if var_mu < 0.0:
-                    var_mu = 0.0
-                vh = cc * (nb * m2[k] - s2[k])
-                if vh < 0.0:
-                    vh = 0.0
-                var = vh + var_mu + var_floor
+                mu, var = _gap_cell_moments(m1[h], s1[h], m2[k], s2[k], nb, fm, ca, cb, cc, var_floor)
                 mu += mean_shift
             d = hv - mu
             # q = d^2 / (2 var) <= bound, tested without the division
