@@ -205,6 +205,16 @@ def _fenwick_add(tree, q, size):  # pragma: no cover - numba
         t += t & (-t)
 
 
+@njit(inline="always", cache=True)
+def _kendall_step(tree, v, lo, size, cnt, kk):  # pragma: no cover - numba
+    """Insert value ``v`` (in ``[lo, lo + size - 1)``) after ``cnt`` earlier ones: returns ``(cnt + 1, kk + the
+    earlier values larger than v)``."""
+    q = v - lo + 1
+    kk += cnt - _fenwick_prefix(tree, q)
+    _fenwick_add(tree, q, size)
+    return cnt + 1, kk
+
+
 @njit(cache=True)
 def _inversions_dense(r, nvals):  # pragma: no cover - numba
     """H^l, H^r for a sequence of dense ranks ``r`` (ties allowed, not inversions) via a Fenwick tree."""
@@ -220,22 +230,9 @@ def _inversions_dense(r, nvals):  # pragma: no cover - numba
     for i in range(n):
         v = r[i]
         # c_le = #{j < i : r[j] <= v}, c_lt = #{j < i : r[j] < v}
-        c_le = 0
-        p = v + 1
-        while p > 0:
-            c_le += tree[p]
-            p -= p & (-p)
-        c_lt = 0
-        p = v
-        while p > 0:
-            c_lt += tree[p]
-            p -= p & (-p)
-        hl[i] = i - c_le
-        hr[i] = less_total[v] - c_lt
-        p = v + 1
-        while p <= nvals:
-            tree[p] += 1
-            p += p & (-p)
+        hl[i] = i - _fenwick_prefix(tree, v + 1)
+        hr[i] = less_total[v] - _fenwick_prefix(tree, v)
+        _fenwick_add(tree, v + 1, nvals + 1)
     return hl, hr
 
 
@@ -324,11 +321,7 @@ def _sweep_kendall(seq, lo, hi, bounds, out_k, out_n):  # pragma: no cover - num
         for p in range(bounds[a], m):
             v = seq[p]
             if v >= lo and v < hi:
-                q = v - lo + 1
-                le = _fenwick_prefix(tree, q)
-                kk += cnt - le
-                _fenwick_add(tree, q, size)
-                cnt += 1
+                cnt, kk = _kendall_step(tree, v, lo, size, cnt, kk)
             if p + 1 == bounds[c]:
                 out_k[a, c] = kk
                 out_n[a, c] = cnt
@@ -349,11 +342,7 @@ def _window_kendall(sigma, i1l, i1h, i2l, i2h):  # pragma: no cover - numba
     for i in range(i1l, i1h):
         v = sigma[i]
         if v >= i2l and v < i2h:
-            q = v - i2l + 1
-            le = _fenwick_prefix(tree, q)
-            kk += cnt - le
-            _fenwick_add(tree, q, size)
-            cnt += 1
+            cnt, kk = _kendall_step(tree, v, i2l, size, cnt, kk)
     return kk, cnt
 
 
