@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 import tracemalloc
 from pathlib import Path
 
@@ -48,29 +47,17 @@ def _strongest(f, n):
     return f.subset(idx)
 
 
-def _ratio_pairs(I, D, ratio=0.8):
-    keep = np.sqrt(np.maximum(D[:, 0], 0)) < ratio * np.sqrt(np.maximum(D[:, 1], 0))
-    return np.c_[np.flatnonzero(keep), I[keep, 0]]
-
-
 def run_peer(name, f1, f2):
-    import cv2
+    """``(pairs, seconds)`` of a peer matcher from :mod:`guidedmatch.evaluation.peers` (ratio 0.8)."""
+    from guidedmatch.evaluation import peers
 
-    t0 = time.perf_counter()
     if name == "faiss":
-        import faiss
-
-        index = faiss.IndexFlatL2(f2.dim)
-        index.add(f2.descriptors)
-        D, I = index.search(f1.descriptors, 2)
-        pairs = _ratio_pairs(I, D)
+        r = peers.match_faiss(f1, f2, ratio=0.8)
     elif name == "flann":
-        fl = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64))
-        knn = fl.knnMatch(f1.descriptors, f2.descriptors, k=2)
-        pairs = np.array([(m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]).reshape(-1, 2)
+        r = peers.match_opencv_flann(f1, f2, ratio=0.8, trees=4, checks=64)
     else:
         raise ValueError(name)
-    return pairs, time.perf_counter() - t0
+    return r.pairs, r.stats["time_s"]
 
 
 def main(argv=None):
