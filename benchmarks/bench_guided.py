@@ -83,12 +83,11 @@ def main(argv=None):
     print(f"pair {pair.name}; detecting / loading SIFT (contrastThreshold=0.01) ...", flush=True)
     F1, F2 = _features(pair.image1, Path(args.cache)), _features(pair.image2, Path(args.cache))
     print(f"features: {len(F1)} x {len(F2)}", flush=True)
-    try:
-        import faiss  # noqa: F401
-        peers = ["faiss", "flann"]
-    except ImportError:
+    from guidedmatch.evaluation.peers import faiss_available
+
+    peers = ["faiss", "flann"] if faiss_available() else ["flann"]
+    if "faiss" not in peers:
         print("faiss not installed: skipping it (pip install -e '.[bench]')")
-        peers = ["flann"]
     match(_strongest(F1, 2000), _strongest(F2, 2000), "so+epi+ia")  # JIT/cache warm-up
     rows = []
     for size in args.sizes:
