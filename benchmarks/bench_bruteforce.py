@@ -27,9 +27,9 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "bruteforce.json"))
     args = ap.parse_args(argv)
-    import cv2
 
     from guidedmatch.bruteforce import match_bruteforce
+    from guidedmatch.evaluation import peers
     from guidedmatch.evaluation.meta import run_metadata, write_json
 
     rng = np.random.default_rng(0)
@@ -40,30 +40,16 @@ def main(argv=None):
         match_bruteforce(d1[:100], d2[:100])  # JIT warm-up
         times = {}
         res = {}
-        for name in ("guidedmatch", "cv2.BFMatcher", "faiss"):
+        runners = {"guidedmatch": lambda: match_bruteforce(d1, d2, ratio=0.8),
+                   "cv2.BFMatcher": lambda: peers.match_opencv_bf(d1, d2, ratio=0.8)}
+        if peers.faiss_available():
+            runners["faiss"] = lambda: peers.match_faiss(d1, d2, ratio=0.8)
+        for name, run in runners.items():
             ts = []
             for _ in range(args.repeats):
                 t0 = time.perf_counter()
-                if name == "guidedmatch":
-                    r = match_bruteforce(d1, d2, ratio=0.8)
-                    pairs = r.pairs
-                elif name == "cv2.BFMatcher":
-                    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=2)
-                    pairs = np.array([(m.queryIdx, m.trainIdx) for m, s in knn if m.distance < 0.8 * s.distance])
-                else:
-                    try:
-                        import faiss
-                    except ImportError:
-                        ts = None
-                        break
-                    idx = faiss.IndexFlatL2(args.dim)
-                    idx.add(d2)
-                    D, I = idx.search(d1, 2)
-                    keep = np.sqrt(D[:, 0]) < 0.8 * np.sqrt(D[:, 1])
-                    pairs = np.c_[np.flatnonzero(keep), I[keep, 0]]
+                pairs = run().pairs
                 ts.append(time.perf_counter() - t0)
-            if ts is None:
-                continue
             times[name] = float(np.median(ts))
             res[name] = pairs
         ours = set(map(tuple, res["guidedmatch"].tolist()))  # built once (was rebuilt per pair: 8 min at 40k)
