@@ -365,7 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", action="append", metavar="KEY=VALUE", help="matcher config override (repeatable)")
     s.add_argument("--geometry", default="ours", choices=("ours", "colmap"), help="two-view geometry: ours "
                    "(the matcher's verdict, default) or colmap (pycolmap's verification)")
-    s.add_argument("--workers", type=_positive_int, default=None, help="matching worker processes (default: auto)")
+    s.add_argument("--workers", type=int, default=None, help="matching worker processes (default: auto; 0 = in this process)")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS", help="match on a running Dask cluster")
     s.add_argument("--threads", type=int, default=-1, help="COLMAP extraction/mapping threads (default -1 = all)")
     s.add_argument("--seed", type=int, default=0, help="mapper random seed (default 0)")

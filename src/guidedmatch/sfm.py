@@ -98,7 +98,7 @@ class SfmConfig:
     mode: str = "so+epi+ia"            # matcher mode (guidedmatch.matcher.match)
     matcher: dict | None = None        # MatcherConfig overrides, e.g. {"alignment": "c_inplane"}
     geometry: str = "ours"             # two-view geometry: "ours" (matcher's verdict written) | "colmap" (pycolmap verifies)
-    workers: int | None = None         # matching worker processes; None = automatic (collection engine)
+    workers: int | None = None         # matching worker processes; None = automatic, 0 = in this process (collection engine)
     scheduler: str | None = None       # address of a running Dask scheduler for matching
     num_threads: int = -1              # COLMAP extraction / verification / mapping threads; -1 = all cores
     seed: int = 0                      # mapper random seed (COLMAP's RANSAC and initial pair trials)
@@ -128,7 +128,7 @@ class SfmConfig:
 
             config_from(MatcherConfig, self.matcher)
         check_choice(o, "geometry", self.geometry, ("ours", "colmap"))
-        check_number(o, "workers", self.workers, lo=1, integer=True, allow_none=True)
+        check_number(o, "workers", self.workers, lo=0, integer=True, allow_none=True)
         check_number(o, "num_threads", self.num_threads, lo=-1, integer=True)
         if self.num_threads == 0:
             raise ConfigError(f"{o}.num_threads must be -1 (all cores) or >= 1; got 0")
@@ -196,12 +196,21 @@ def check_images(image_dir: str | os.PathLike) -> tuple[list[str], list[dict]]:
     if not names:
         raise InputError(f"no images in {root} (looked for {', '.join(IMAGE_EXTENSIONS)})")
     good, skipped = [], []
-    for n in names:
-        img = cv2.imread(str(root / n), cv2.IMREAD_REDUCED_GRAYSCALE_8)
-        if img is None or img.size == 0:
-            skipped.append({"name": n, "reason": "unreadable (OpenCV cannot decode it)"})
-        else:
-            good.append(n)
+    try:   # the reason goes into the report; OpenCV's own decoder messages on stderr would only add noise
+        old_level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    except AttributeError:  # pragma: no cover - OpenCV builds without the logging module
+        old_level = None
+    try:
+        for n in names:
+            img = cv2.imread(str(root / n), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+            if img is None or img.size == 0:
+                skipped.append({"name": n, "reason": "unreadable (OpenCV cannot decode it)"})
+            else:
+                good.append(n)
+    finally:
+        if old_level is not None:
+            cv2.utils.logging.setLogLevel(old_level)
     if len(good) < 2:
         extra = f" ({len(skipped)} unreadable: {', '.join(s['name'] for s in skipped[:3])})" if skipped else ""
         raise InputError(f"structure from motion needs at least 2 readable images; {root} has {len(good)}{extra}")
@@ -555,20 +564,21 @@ def plot_reconstruction(path: str | os.PathLike, rec: Any, title: str = "", max_
     span = np.ptp(np.vstack([c, np.percentile(p, [1, 99], axis=0)]) if len(p) else c, axis=0).max() if len(c) else 1.0
     arrow = 0.08 * max(span, 1e-9)
     fig, axes = plt.subplots(1, 2, figsize=(13, 6))
+    size = 4.0 if len(p) < 5000 else 0.6
     for ax, (a, b, la, lb, name) in zip(axes, ((0, 1, "right", "forward", "top view"),
                                                  (1, 2, "forward", "up", "side view"))):
         if len(p):
-            ax.scatter(p[:, a], p[:, b], s=0.3, c="0.35", alpha=0.5, linewidths=0)
+            ax.scatter(p[:, a], p[:, b], s=size, c="0.35", alpha=0.5, linewidths=0)
         ax.scatter(c[:, a], c[:, b], s=25, c="tab:red", zorder=3, label="cameras")
         for ci, di in zip(c, d):
             ax.plot([ci[a], ci[a] + arrow * di[a]], [ci[b], ci[b] + arrow * di[b]], c="tab:red", lw=1.2)
-        if len(p):
-            lo, hi = np.percentile(np.vstack([p, c])[:, [a, b]], [1, 99], axis=0)
-            lo, hi = np.minimum(lo, c[:, [a, b]].min(0)), np.maximum(hi, c[:, [a, b]].max(0))
-            pad = 0.05 * (hi - lo).max()
-            ax.set_xlim(lo[0] - pad, hi[0] + pad)
-            ax.set_ylim(lo[1] - pad, hi[1] + pad)
-        ax.set_aspect("equal", adjustable="datalim")
+        xy = np.vstack([np.percentile(p[:, [a, b]], [1, 99], axis=0), c[:, [a, b]]]) if len(p) else c[:, [a, b]]
+        lo, hi = xy.min(0), xy.max(0)
+        half = 0.55 * max(float((hi - lo).max()), 1e-9)          # square box: equal scales on both axes
+        mid = (lo + hi) / 2
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_aspect("equal", adjustable="box")
         ax.set_xlabel(la)
         ax.set_ylabel(lb)
         ax.set_title(f"{name}: {len(c)} cameras, {rec.num_points3D()} points" + (f" (showing {len(p)})" if
@@ -594,8 +604,8 @@ def report_markdown(report: dict) -> str:
     ma = st["matching"]
     coll = ma["collection"]
     lines.append(f"| matching ({report['config']['mode']}, geometry {report['config']['geometry']}) | "
-                 f"{_fmt_s(ma['time_s'])} | {ma['pairs']} pairs: {len(coll.get('done', []) if isinstance(coll.get('done'), list) else []) or coll.get('totals', {}).get('done', '?')} "
-                 f"matched now, {coll.get('totals', {}).get('skipped', '?')} reused, {len(coll.get('failed', []))} failed; "
+                 f"{_fmt_s(ma['time_s'])} | {ma['pairs']} pairs: {coll['done']} matched now, {coll['skipped']} reused, "
+                 f"{len(coll['failed'])} failed; "
                  f"{ma['verified_pairs']} verified pairs, {ma['verified_inliers']:,} inlier matches"
                  + (f" (COLMAP verification {_fmt_s(ma['verify_time_s'])} s)" if report['config']['geometry'] == 'colmap' else "")
                  + " |")
@@ -618,7 +628,7 @@ def report_markdown(report: dict) -> str:
     if report.get("skipped_images"):
         lines += ["", "## Skipped images", ""] + [f"* {s['name']}: {s['reason']}" for s in report["skipped_images"]]
     if coll.get("failed"):
-        lines += ["", "## Failed pairs", ""] + [f"* {f}" for f in coll["failed"]]
+        lines += ["", "## Failed pairs", ""] + [f"* {' '.join(f['pair'])}: {f['reason']}" for f in coll["failed"]]
     rows = report["pairs"]
     lines += ["", f"## Pairs ({len(rows)} with matches; verdict = COLMAP two-view configuration)", "",
               "| image 1 | image 2 | matches | verdict | inliers |", "|---|---|---|---|---|"]

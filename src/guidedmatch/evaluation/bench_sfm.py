@@ -154,25 +154,30 @@ def _fmt(v, spec="{:.2f}"):
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """One table per feature setting, the issue's columns plus mapping time."""
+    """One table per feature setting: the issue's columns plus mapping time, and time / inliers relative to
+    COLMAP exhaustive in the same run."""
     out = []
     for setting in dict.fromkeys(r["setting"] for r in rows):
         sub = [r for r in rows if r["setting"] == setting]
+        ref = next((r for r in sub if r["method"] == "colmap" and "error" not in r), None)
         kp = sub[0].get("keypoints")
         out += [f"**{setting} features** ({kp:,} keypoints in {sub[0].get('images', '?')} images)" if kp else
                 f"**{setting} features**", "",
-                "| method | match + verify (s) | verified pairs | verified inliers | registered | 3D points | "
-                "mapping (s) | median pose error | AUC@1°/2°/5° |", "|---|---|---|---|---|---|---|---|---|"]
+                "| method | match + verify (s) | time / COLMAP | verified inliers | inliers / COLMAP | registered | "
+                "3D points | mapping (s) | median pose error | AUC@1°/2°/5° |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
         for r in sub:
             if "error" in r:
-                out.append(f"| {r['method']} | failed: {r['error']} | | | | | | | |")
+                out.append(f"| {r['method']} | failed: {r['error']} | | | | | | | | |")
                 continue
             t = _fmt(r["match_verify_s"])
             if r.get("verify_s") is not None:
                 t = f"{r['match_s']:.2f} + {r['verify_s']:.2f}"
+            rt = f"{r['match_verify_s'] / ref['match_verify_s']:.2f}" if ref else "–"
+            ri = f"{r['verified_inliers'] / max(1, ref['verified_inliers']):.2f}x" if ref else "–"
             auc = " / ".join(f"{v:.3f}" for v in r["auc"].values())
             med = r["median_pose_error_deg"]
-            out.append(f"| {r['method']} | {t} | {r['verified_pairs']} | {r['verified_inliers']:,} | "
+            out.append(f"| {r['method']} | {t} | {rt} | {r['verified_inliers']:,} | {ri} | "
                        f"{r['registered']}/{r.get('images', '?')} | {r['points3D']:,} | {r['mapping_s']:.1f} | "
                        f"{'inf' if med is None or med == float('inf') else f'{med:.3f}°'} | {auc} |")
         out.append("")
