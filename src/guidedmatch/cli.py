@@ -251,7 +251,11 @@ def cmd_sfm(args) -> int:
                      matcher=_parse_kv(args.config, "--config") or None, geometry=args.geometry, workers=args.workers,
                      scheduler=args.scheduler, num_threads=args.threads, seed=args.seed, progress=not args.quiet)
     report = run_sfm(args.image_dir, args.out_dir, conf, command="guidedmatch " + " ".join(sys.argv[1:]))
-    return 0 if report["registered"] >= 2 else 1
+    if report["registered"] < 2:
+        print(f"guidedmatch: no reconstruction: the mapper registered {report['registered']} of {report['num_images']} "
+              f"images (too few verified pairs; see {Path(args.out_dir) / 'report.md'})", file=sys.stderr)
+        return 1
+    return 0
 
 
 # --------------------------------------------------------------------------- parser
@@ -331,6 +335,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--methods", default=None, help="sfm: comma-separated subset of colmap, colmap_guided, "
                    "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap")
     b.add_argument("--threads", type=_positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
+    b.add_argument("--no-e2e", action="store_true", help="sfm: skip the end-to-end comparison (guidedmatch sfm vs "
+                   "the pycolmap pipeline with COLMAP's matcher)")
     b.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("sfm", help="photos -> COLMAP sparse model (extraction, guided matching, incremental mapping)",

@@ -653,8 +653,9 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     t_start = time.perf_counter()
     names, skipped = check_images(paths.image_dir)
     project = check_output(conf, paths, names)
-    if conf.pairs not in ("exhaustive",) and not conf.pairs.startswith("sequential") and not Path(conf.pairs).is_file():
-        raise InputError(f"pairs file not found: {conf.pairs}")
+    from .collection.pairs import pairs_from_spec
+
+    pairs_from_spec(conf.pairs, names)   # a bad spec, a missing pairs file or unknown names fail here, before any work
     paths.out_dir.mkdir(parents=True, exist_ok=True)
     _write_project(paths, project)
     if skipped:
