@@ -297,13 +297,7 @@ class ColmapSink(MatchSink):
             # pycolmap's transaction commits on exit even after an exception: undo by hand so a pair is stored
             # completely or not at all (a crash / kill -9 leaves the open transaction to SQLite's rollback)
             try:
-                if db.exists_matches(i1, i2):
-                    db.delete_matches(i1, i2)
-                if db.exists_two_view_geometry(i1, i2):
-                    db.delete_two_view_geometry(i1, i2)
-                db.write_matches(i1, i2, m)
-                if tvg is not None:
-                    db.write_two_view_geometry(i1, i2, tvg)
+                self._write_rows(db, i1, i2, m, tvg)
             except BaseException:
                 for fn in (db.delete_matches, db.delete_two_view_geometry):
                     try:
@@ -312,6 +306,17 @@ class ColmapSink(MatchSink):
                         pass
                 raise
         self.written += 1
+
+    @staticmethod
+    def _write_rows(db, i1: int, i2: int, m: np.ndarray, tvg) -> None:
+        """Replace the pair's rows (called inside the transaction of :meth:`write`)."""
+        if db.exists_matches(i1, i2):
+            db.delete_matches(i1, i2)
+        if db.exists_two_view_geometry(i1, i2):
+            db.delete_two_view_geometry(i1, i2)
+        db.write_matches(i1, i2, m)
+        if tvg is not None:
+            db.write_two_view_geometry(i1, i2, tvg)
 
     def verify(self, options=None, pairs=None) -> int:
         """Run COLMAP's geometric verification (``pycolmap.verify_matches``) over the pairs with matches and no
