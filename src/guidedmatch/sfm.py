@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from .config import MODES
 from .errors import ConfigError, DatabaseError, InputError, OutputError
 from .validation import check_bool, check_choice, check_number, config_from
 
@@ -53,8 +54,6 @@ OUR_DETECTORS = ("sift", "orb", "akaze", "brisk")
 CAMERA_MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
 #: Two-view geometry configurations the mapper uses (COLMAP ``TwoViewGeometry::ConfigurationType``).
 VERIFIED_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC", "MULTIPLE")
-#: The matching modes of :func:`guidedmatch.matcher.match` usable for collections.
-MODES = ("bf", "epi", "so", "so+epi", "so+epi+ia")
 
 
 def parse_camera(spec: str | None) -> tuple[str, list[float]] | None:
@@ -124,7 +123,7 @@ class SfmConfig:
         if self.matcher is not None and not isinstance(self.matcher, dict):
             raise ConfigError(f"{o}.matcher must be a dict of MatcherConfig fields or None; got {self.matcher!r}")
         if self.matcher:
-            from .matcher import MatcherConfig
+            from .config import MatcherConfig
 
             config_from(MatcherConfig, self.matcher)
         check_choice(o, "geometry", self.geometry, ("ours", "colmap"))
@@ -409,7 +408,7 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     from .collection.pairs import pairs_from_spec
     from .collection.sinks import ColmapSink
     from .collection.sources import ColmapSource
-    from .matcher import MatcherConfig
+    from .config import MatcherConfig
 
     t0 = time.perf_counter()
     source = ColmapSource(paths.database)

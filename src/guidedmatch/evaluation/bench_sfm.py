@@ -92,7 +92,7 @@ def match_ours(db: Path, mode: str, geometry: str, threads: int, matcher: dict |
     from ..collection.pairs import exhaustive_pairs
     from ..collection.sinks import ColmapSink
     from ..collection.sources import ColmapSource
-    from ..matcher import MatcherConfig
+    from ..config import MatcherConfig
 
     source = ColmapSource(db)
     try:
