@@ -313,6 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--methods", default=None, help="sfm: comma-separated subset of colmap, colmap_guided, "
                    "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap")
     b.add_argument("--threads", type=_positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
+    b.add_argument("--work", default=None, help="sfm: folder for the databases and models (default OUT/work; "
+                   "extracted features are reused by a rerun)")
     b.add_argument("--no-e2e", action="store_true", help="sfm: skip the end-to-end comparison (guidedmatch sfm vs "
                    "the pycolmap pipeline with COLMAP's matcher)")
     b.set_defaults(func=cmd_bench)

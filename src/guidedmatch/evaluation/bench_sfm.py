@@ -257,11 +257,13 @@ def plot_time_vs_inliers(rows: list[dict], path: Path) -> Path:
     markers = {"8192": "o", "50k": "s"}
     methods = list(dict.fromkeys(r["method"] for r in rows))
     colors = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(methods)}
+    seen = set()
     for r in rows:
         if "error" in r:
             continue
         ax.scatter(r["match_verify_s"], r["verified_inliers"], marker=markers.get(r["setting"], "^"),
-                   color=colors[r["method"]], s=60, label=f"{r['method']} ({r['setting']})")
+                   color=colors[r["method"]], s=60, label=None if r["method"] in seen else r["method"])
+        seen.add(r["method"])
         ax.annotate(r["method"], (r["match_verify_s"], r["verified_inliers"]), fontsize=7, xytext=(4, 3),
                     textcoords="offset points")
     ax.set_xscale("log")
@@ -274,8 +276,10 @@ def plot_time_vs_inliers(rows: list[dict], path: Path) -> Path:
 
 
 def run(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads: int = 2, seed: int = 0,
-        matcher: dict | None = None, workers: int | None = None, command: str = "", e2e: bool = True) -> dict:
-    """Run the benchmark; writes ``out/sfm.json``, ``out/sfm.md``, ``out/sfm_time_vs_inliers.png``."""
+        matcher: dict | None = None, workers: int | None = None, command: str = "", e2e: bool = True,
+        work: Path | None = None) -> dict:
+    """Run the benchmark; writes ``out/sfm.json``, ``out/sfm.md``, ``out/sfm_time_vs_inliers.png``. Databases and
+    models go to ``work`` (default ``out/work``; the extracted features of each setting are reused by a rerun)."""
     from ..errors import InputError
     from ..features import atomic_write_text
     from .meta import run_metadata, write_json
@@ -285,7 +289,7 @@ def run(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads:
         raise InputError(f"{scene}: expected images/ and gt_dense_cameras/ (Strecha layout)")
     gt = read_strecha_cameras(cam_dir)
     explicit = methods is not None
-    work = out / "work"
+    work = Path(work) if work is not None else out / "work"
     rows = []
     results = {"meta": run_metadata(seed), "command": command, "scene": str(scene), "threads": threads,
                "methods": methods, "settings": list(settings), "rows": rows, "end_to_end": None,
@@ -352,6 +356,6 @@ def main(args) -> int:
 
             raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(method_names())}")
     res = run(scene, Path(args.out), settings=settings, methods=methods, threads=args.threads, seed=args.seed,
-              command="guidedmatch " + " ".join(sys.argv[1:]), e2e=not args.no_e2e)
+              command="guidedmatch " + " ".join(sys.argv[1:]), e2e=not args.no_e2e, work=args.work)
     print(markdown_table(res["rows"]))
     return 0
