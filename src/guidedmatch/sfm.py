@@ -258,8 +258,6 @@ def check_output(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     out = paths.out_dir
     if out.exists() and not out.is_dir():
         raise OutputError(f"OUT_DIR {out} exists and is not a folder")
-    if out == paths.image_dir or paths.image_dir in out.parents:
-        pass  # allowed (COLMAP projects often sit next to images), images are never written
     probe = out if out.exists() else next(p for p in out.parents if p.exists())
     if not os.access(probe, os.W_OK):
         raise OutputError(f"OUT_DIR {out} is not writable")
