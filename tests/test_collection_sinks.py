@@ -35,7 +35,7 @@ def base(tmp_path_factory):
     fa, fb = src.load(a), src.load(b)
     r = match(fa, fb)
     g = two_view_geometry(fa.keypoints[r.pairs[:, 0]], fb.keypoints[r.pairs[:, 1]], fa.image_size, fb.image_size)
-    assert g and g.num_inliers > 30
+    assert g and g.model == "F" and g.H is not None and g.num_inliers > 30  # both F and H rows get exercised
     return root / "db.db", mv, src, r, g
 
 
@@ -75,21 +75,32 @@ def test_colmap_round_trip(base, db_copy):
     kp1 = db.read_keypoints(i1)[:, :2].astype(float)
     kp2 = db.read_keypoints(i2)[:, :2].astype(float)
     db.close()
-    if g.model == "F":
-        # F in COLMAP pixels: the inliers' COLMAP keypoints satisfy it as ours satisfy g.F in OpenCV pixels
-        x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)]
-        x2 = np.c_[kp2[tvg.inlier_matches[:, 1]], np.ones(g.num_inliers)]
-        l2 = x1 @ tvg.F.T
-        d = np.abs(np.sum(x2 * l2, 1)) / np.hypot(l2[:, 0], l2[:, 1])
-        assert np.median(d) < 1.0
-        fa, fb = src.load(a), src.load(b)
-        y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)]
-        y2 = np.c_[fb.keypoints[r.pairs[g.inliers, 1]], np.ones(g.num_inliers)]
-        l2c = y1 @ g.F.T
-        dc = np.abs(np.sum(y2 * l2c, 1)) / np.hypot(l2c[:, 0], l2c[:, 1])
-        assert np.allclose(d, dc, atol=1e-3)  # float32 keypoints in the db
-    if g.H is not None:
-        assert _scaled_equal(tvg.H, colmap_pixel_geometry(None, g.H)[1])
+    # F in COLMAP pixels: the inliers' COLMAP keypoints satisfy it as ours satisfy g.F in OpenCV pixels
+    x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)]
+    x2 = np.c_[kp2[tvg.inlier_matches[:, 1]], np.ones(g.num_inliers)]
+    l2 = x1 @ tvg.F.T
+    d = np.abs(np.sum(x2 * l2, 1)) / np.hypot(l2[:, 0], l2[:, 1])
+    assert np.median(d) < 1.0
+    fa, fb = src.load(a), src.load(b)
+    y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)]
+    y2 = np.c_[fb.keypoints[r.pairs[g.inliers, 1]], np.ones(g.num_inliers)]
+    l2c = y1 @ g.F.T
+    dc = np.abs(np.sum(y2 * l2c, 1)) / np.hypot(l2c[:, 0], l2c[:, 1])
+    assert np.allclose(d, dc, atol=1e-3)  # float32 keypoints in the db
+    assert _scaled_equal(tvg.H, colmap_pixel_geometry(None, g.H)[1])
+    # the same matches as a planar verdict: config 6 (PLANAR_OR_PANORAMIC), H maps COLMAP pixels of the inliers
+    gh = TwoViewGeometry("verified", "H", None, g.H, g.inliers, g.num_inliers, g.num_matches, "planar")
+    with ColmapSink(db_copy) as sink:
+        sink.write(b, a, r.pairs[:, ::-1], None, _reversed(gh))
+    db = pycolmap.Database.open(str(db_copy))
+    tvg = db.read_two_view_geometry(i1, i2)
+    db.close()
+    assert int(tvg.config) == 6 and tvg.F is None
+    assert np.array_equal(tvg.inlier_matches.astype(np.int64), r.pairs[g.inliers])
+    x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)] @ tvg.H.T
+    fa, fb = src.load(a), src.load(b)
+    y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)] @ g.H.T
+    assert np.allclose(x1[:, :2] / x1[:, 2:3] - 0.5, y1[:, :2] / y1[:, 2:3], atol=1e-3)
 
 
 def test_colmap_reversed_pair_stored_canonically(base, db_copy, tmp_path):
