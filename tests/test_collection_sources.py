@@ -15,6 +15,8 @@ from guidedmatch.collection.sources import (ColmapSource, H5Source, images_to_da
 from guidedmatch.errors import ConfigError, DatabaseError, ImageReadError, InputError, OutputError
 from guidedmatch.features import Features, detect
 
+SRC = str(__import__("pathlib").Path(__file__).resolve().parents[1] / "src")
+
 
 def _blob_image(w=320, h=240, seed=0):
     """Gaussian blobs at known sub-pixel centres (OpenCV convention: pixel (i, j) centre = (j, i))."""
@@ -283,3 +285,39 @@ def test_open_source_dispatch(tmp_path, blob_db):
         open_source(tmp_path / "x.bin")
     with pytest.raises(DatabaseError, match="not found"):
         open_source(tmp_path / "nothing.db")
+
+
+def test_open_while_a_sink_writes(views, tmp_path):
+    """Opening runs COLMAP's schema set-up, refused by SQLite during another connection's write transaction:
+    ColmapSource waits while a guidedmatch sink holds the write lock, and reads through open connections."""
+    import subprocess
+    import sys
+    import time
+
+    mv, img_dir = views
+    path = tmp_path / "db.db"
+    early = images_to_database(img_dir, path, max_features=200, progress=False)
+    early.load(mv.names[0])  # connection opened before the writer starts
+    code = f"""
+import sys, time, numpy as np, pycolmap
+sys.path.insert(0, {str(SRC)!r})
+from guidedmatch.collection.sinks import ColmapSink
+with ColmapSink({str(path)!r}) as sink:
+    with pycolmap.DatabaseTransaction(sink._db):
+        sink._db.write_matches(1, 2, np.zeros((1, 2), np.uint32))
+        print("IN", flush=True)
+        time.sleep(1.5)
+    print("OUT", flush=True)
+"""
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "IN"
+        t0 = time.monotonic()
+        assert len(early.load(mv.names[1])) > 0  # WAL: an open connection reads during the write
+        assert time.monotonic() - t0 < 1.0
+        src = ColmapSource(path)  # waits for the transaction to end
+        assert time.monotonic() - t0 > 0.5 and src.names() == list(mv.names)
+        assert proc.stdout.readline().strip() == "OUT"
+    finally:
+        proc.wait(timeout=30)
+    assert proc.returncode == 0

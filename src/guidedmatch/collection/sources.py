@@ -129,8 +129,33 @@ class FeatureSource:
 
 
 # ====================================================================== COLMAP
-def _open_colmap(path: Path):
-    """``pycolmap.Database`` of an existing COLMAP database (DatabaseError when missing or not a database)."""
+def _writer_active(path: Path) -> bool:
+    """True while a guidedmatch sink holds the write lock ``<db>.lock`` (a shared flock probe fails)."""
+    import fcntl
+
+    lock = path.with_name(path.name + ".lock")
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
+
+
+def _open_colmap(path: Path, busy_timeout: float = 30.0):
+    """``pycolmap.Database`` of an existing COLMAP database (DatabaseError when missing or not a database).
+
+    Opening runs COLMAP's schema set-up, which fails while another connection is inside a write transaction
+    ("database is locked"). The open is retried: for up to ``busy_timeout`` s while a guidedmatch sink holds the
+    database's write lock (its transactions last milliseconds), else for 2 s.
+    """
     import pycolmap
 
     if not path.exists():
@@ -141,10 +166,18 @@ def _open_colmap(path: Path):
         head = fh.read(16)
     if head != _SQLITE_MAGIC:
         raise DatabaseError(f"{path} is not a COLMAP database (not an SQLite file)")
-    try:
-        return pycolmap.Database.open(str(path))
-    except Exception as exc:  # pycolmap raises RuntimeError / ValueError with SQLite's message
-        raise DatabaseError(f"cannot open COLMAP database {path}: {exc}") from None
+    start = time.monotonic()
+    delay = 0.02
+    while True:
+        try:
+            return pycolmap.Database.open(str(path))
+        except Exception as exc:  # pycolmap raises RuntimeError / ValueError with SQLite's message
+            waited = time.monotonic() - start
+            if waited > (busy_timeout if _writer_active(path) else 2.0):
+                raise DatabaseError(f"cannot open COLMAP database {path} (tried for {waited:.1f} s; another "
+                                    f"process may be writing it): {exc}") from None
+            time.sleep(delay)
+            delay = min(0.5, delay * 2)
 
 
 def _descriptor_kind(ftype, nbytes: int) -> str:
@@ -174,7 +207,7 @@ class ColmapSource(FeatureSource):
     def __init__(self, database_path: str | os.PathLike, *, busy_timeout: float = 30.0) -> None:
         super().__init__(database_path)
         self.busy_timeout = float(busy_timeout)
-        db = _open_colmap(self.path)
+        db = _open_colmap(self.path, self.busy_timeout)
         try:
             images = sorted(db.read_all_images(), key=lambda im: im.image_id)
             cameras = {c.camera_id: c for c in db.read_all_cameras()}
@@ -228,7 +261,7 @@ class ColmapSource(FeatureSource):
 
     def _db(self):
         if self._handle is None:
-            self._handle = _open_colmap(self.path)
+            self._handle = _open_colmap(self.path, self.busy_timeout)
         return self._handle
 
     def _retry(self, fn):
