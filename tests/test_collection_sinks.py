@@ -161,6 +161,13 @@ def test_colmap_unverified_pair_and_resume(base, db_copy):
     with ColmapSink(db_copy) as sink:  # a new run sees the pair as done
         assert sink.done_pairs() == {frozenset((a, c))}
         assert sink.done_pairs([(a, c), (mv.names[1], a)]) == {frozenset((a, c))}
+    b = mv.names[1]
+    few = TwoViewGeometry("too-few-matches", "none", None, None, np.zeros(0, bool), 0, 0, "no matches")
+    with ColmapSink(db_copy) as sink:
+        sink.write(a, b, np.zeros((0, 2), np.int64), np.zeros(0, np.float32), few)
+        # pycolmap's bulk readers skip rows with 0 matches and no matrix (documented); the exact check finds it
+        assert sink.done_pairs() == {frozenset((a, c))}
+        assert sink.done_pairs([(b, a), (a, c)]) == {frozenset((a, b)), frozenset((a, c))}
     with ColmapSink(db_copy, overwrite=True) as sink:
         assert sink.done_pairs() == set()
     db = pycolmap.Database.open(str(db_copy))
@@ -346,6 +353,7 @@ def test_h5_resume_after_crash(tmp_path):
     assert not (tmp_path / "m.h5").exists()
     with H5MatchesSink(tmp_path / "m.h5", nf) as again:
         assert again.done_pairs() == {frozenset(names[0:2]), frozenset(names[1:3])}
+        assert again.done_pairs([(names[2], names[1]), (names[4], names[5])]) == {frozenset(names[1:3])}
         p, s = _random_matches(rng, 100, 100, 10)
         again.write(names[3], names[2], p, s)
         again.write(names[1], names[0], p, s)  # the other order of a stored pair: replaces it

@@ -321,3 +321,21 @@ with ColmapSink({str(path)!r}) as sink:
     finally:
         proc.wait(timeout=30)
     assert proc.returncode == 0
+
+
+def test_single_camera_and_empty_image(tmp_path):
+    img, _ = _blob_image(160, 120)
+    (tmp_path / "img" / "sub").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "img" / "a.png"), img)
+    cv2.imwrite(str(tmp_path / "img" / "sub" / "flat.png"), np.full((120, 160), 90, np.uint8))  # no features
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", single_camera=True, progress=False)
+    assert src.names() == ["a.png", "sub/flat.png"] and src.num_features("sub/flat.png") == 0
+    empty = src.load("sub/flat.png")
+    assert len(empty) == 0 and empty.dim == 128
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    assert (db.num_cameras(), db.num_rigs(), db.num_frames(), db.num_images()) == (1, 1, 2, 2)
+    db.close()
+    src.validate()
+    cv2.imwrite(str(tmp_path / "img" / "big.png"), np.zeros((130, 170), np.uint8))
+    with pytest.raises(InputError, match="single_camera"):
+        images_to_database(tmp_path / "img", tmp_path / "db.db", single_camera=True, progress=False, resume=True)

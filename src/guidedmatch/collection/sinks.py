@@ -141,8 +141,9 @@ class MatchSink:
 
     kind = ""
 
-    def done_pairs(self) -> set[frozenset[str]]:
-        """Pairs already complete in the sink (resume: skip them)."""
+    def done_pairs(self, candidates=None) -> set[frozenset[str]]:
+        """Pairs already complete in the sink (resume: skip them). Pass the pair list as ``candidates`` for an
+        exact answer restricted to it (ColmapSink: see its note on pairs with zero matches)."""
         raise NotImplementedError
 
     def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None,
@@ -483,9 +484,13 @@ class H5MatchesSink(MatchSink):
         a, b = (self._unsanitize.get(x, x) for x in parts)
         return frozenset((a, b))
 
-    def done_pairs(self) -> set[frozenset[str]]:
-        """Pairs in ``matches.h5``, in complete segments, or written in this session (either key order)."""
+    def done_pairs(self, candidates=None) -> set[frozenset[str]]:
+        """Pairs in ``matches.h5``, in complete segments, or written in this session (either key order);
+        restricted to ``candidates`` (pairs of names) when given."""
         keys = set(self._done) | set(self._buffer)
+        if candidates is not None:
+            return {frozenset((a, b)) for a, b in candidates
+                    if names_to_pair(a, b) in keys or names_to_pair(b, a) in keys}
         return {s for s in map(self._key_names, keys) if s is not None}
 
     def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None = None,

@@ -104,6 +104,12 @@ class FeatureSource:
         """The image's :class:`~guidedmatch.features.Features` (OpenCV pixel convention)."""
         raise NotImplementedError
 
+    def validate(self, names=None) -> None:
+        """Check that every image (or ``names``) has descriptors of one type and length; InputError if not.
+
+        Call it before matching: sources check what is cheap at construction; this may read more.
+        """
+
     def close(self) -> None:
         """Close the file handle of this process (reopened by the next :meth:`load`)."""
         h, self._handle = self._handle, None
