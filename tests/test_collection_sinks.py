@@ -394,3 +394,58 @@ def test_h5_sink_from_source(base, tmp_path):
     got, _, _, length = _hloc_get_matches(tmp_path / "m.h5", a, b)
     assert length == src.num_features(a) and np.array_equal(got, r.pairs[np.argsort(r.pairs[:, 0])])
     assert isinstance(src, ColmapSource)
+
+
+def _synthetic_db(path, n_images=24, n_kp=200):
+    db = pycolmap.Database.open(str(path))
+    cid = db.write_camera(pycolmap.Camera.create_from_model_name(0, "PINHOLE", 100.0, 64, 48))
+    rng = np.random.default_rng(0)
+    for k in range(n_images):
+        iid = db.write_image(pycolmap.Image(name=f"im{k:02d}.png", camera_id=cid))
+        db.write_keypoints(iid, rng.uniform(0, 48, (n_kp, 2)).astype(np.float32))
+        db.write_descriptors(iid, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
+                                                              rng.integers(0, 255, (n_kp, 128), dtype=np.uint8)))
+    db.close()
+
+
+def test_colmap_sink_survives_kill_9(tmp_path):
+    """kill -9 while a process writes pair after pair: every stored pair has both rows, consistent; resume works."""
+    import signal
+
+    path = tmp_path / "db.db"
+    _synthetic_db(path)
+    code = f"""
+import numpy as np
+from guidedmatch.collection.pairs import exhaustive_pairs
+from guidedmatch.collection.sinks import ColmapSink
+from guidedmatch.geometry import TwoViewGeometry
+names = [f"im{{k:02d}}.png" for k in range(24)]
+rng = np.random.default_rng(1)
+with ColmapSink({str(path)!r}) as sink:
+    for k, (a, b) in enumerate(exhaustive_pairs(names).pairs[::-1]):
+        m = np.c_[rng.permutation(200)[:150], rng.permutation(200)[:150]]
+        inl = rng.random(150) < 0.5
+        g = TwoViewGeometry("verified", "F", rng.normal(size=(3, 3)), None, inl, int(inl.sum()), 150, "x")
+        sink.write(a, b, m, None, g)
+        print(k, flush=True)
+"""
+    proc = subprocess.Popen([sys.executable, "-c", f"import sys; sys.path.insert(0, {os.path.abspath(SRC)!r})\n"
+                             + code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        for _ in range(40):  # let it store ~40 pairs, then kill it mid-stream
+            proc.stdout.readline()
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    db = pycolmap.Database.open(str(path))
+    match_ids = set(db.read_num_matches()[0])
+    geo_ids = set(db.read_two_view_geometry_num_inliers()[0])
+    assert match_ids == geo_ids and len(match_ids) >= 40
+    for pid in match_ids:
+        i1, i2 = pycolmap.pair_id_to_image_pair(pid)
+        m = {tuple(r) for r in db.read_matches(i1, i2)}
+        inl = db.read_two_view_geometry(i1, i2).inlier_matches
+        assert len(m) == 150 and {tuple(r) for r in inl} <= m and len(inl) > 0
+    db.close()
+    with ColmapSink(path) as sink:
+        assert len(sink.done_pairs()) == len(match_ids)
