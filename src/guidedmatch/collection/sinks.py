@@ -329,7 +329,7 @@ class ColmapSink(MatchSink):
         import pycolmap
 
         if self.geometry != "colmap":
-            raise ConfigError(f"ColmapSink.verify needs geometry='colmap' (this sink writes geometry={self.geometry!r})")
+            raise ConfigError(f"ColmapSink.verify needs geometry='colmap' (this sink has geometry={self.geometry!r})")
         if isinstance(options, dict):
             opts = pycolmap.TwoViewGeometryOptions()
             opts.mergedict(options)
