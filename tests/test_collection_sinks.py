@@ -449,3 +449,33 @@ with ColmapSink({str(path)!r}) as sink:
     db.close()
     with ColmapSink(path) as sink:
         assert len(sink.done_pairs()) == len(match_ids)
+
+
+def test_mapper_runs_on_our_geometry_without_verification(tmp_path):
+    """Rendered collection -> our database -> matches + our two-view geometries -> pycolmap.incremental_mapping
+    registers every view of the connected sequence; pairs without overlap get no inliers."""
+    from guidedmatch.collection.pairs import exhaustive_pairs
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(seed=1)
+    write_views(mv, tmp_path / "img")
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", progress=False)
+    with ColmapSink(tmp_path / "db.db") as sink:
+        for a, b in exhaustive_pairs(src.names()):
+            fa, fb = src.load(a), src.load(b)
+            r = match(fa, fb)
+            g = two_view_geometry(fa.keypoints[r.pairs[:, 0]], fb.keypoints[r.pairs[:, 1]], fa.image_size,
+                                  fb.image_size)
+            sink.write(a, b, r.pairs, r.distances, g)
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    with_inliers = {frozenset(map(int, pycolmap.pair_id_to_image_pair(p)))
+                    for p in db.read_two_view_geometry_num_inliers()[0]}
+    ids = {im.name: im.image_id for im in db.read_all_images()}
+    db.close()
+    for i, j in mv.non_overlapping_pairs():
+        assert frozenset((ids[mv.names[i]], ids[mv.names[j]])) not in with_inliers
+    recs = pycolmap.incremental_mapping(tmp_path / "db.db", tmp_path / "img", tmp_path / "sparse")
+    assert len(recs) == 1
+    rec = next(iter(recs.values()))
+    registered = {im.name for im in rec.images.values() if im.has_pose}
+    assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
