@@ -479,3 +479,45 @@ def test_mapper_runs_on_our_geometry_without_verification(tmp_path):
     rec = next(iter(recs.values()))
     registered = {im.name for im in rec.images.values() if im.has_pose}
     assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), m=st.integers(0, 120), reverse=st.booleans(), model=st.sampled_from("FH"))
+def test_colmap_rows_property(tmp_path_factory, seed, m, reverse, model):
+    """Random matches / inliers / models written in either order read back in COLMAP's canonical form."""
+    path = tmp_path_factory.mktemp("prop") / "db.db"
+    _synthetic_db(path, n_images=3, n_kp=150)
+    rng = np.random.default_rng(seed)
+    pairs = np.c_[rng.permutation(150)[:m], rng.permutation(150)[:m]].astype(np.int64)  # (im00, im02)
+    inl = rng.random(m) < 0.6
+    F, H = rng.normal(size=(3, 3)), rng.normal(size=(3, 3)) + 3 * np.eye(3)
+    g = TwoViewGeometry("verified", model, F if model == "F" else None, H, inl, int(inl.sum()), m, "x")
+    with ColmapSink(path) as sink:
+        if reverse:
+            sink.write("im02.png", "im00.png", pairs[:, ::-1], None, _reversed(g))
+        else:
+            sink.write("im00.png", "im02.png", pairs, None, g)
+    db = pycolmap.Database.open(str(path))
+    i1, i2 = db.read_image_with_name("im00.png").image_id, db.read_image_with_name("im02.png").image_id
+    assert np.array_equal(db.read_matches(i1, i2).astype(np.int64).reshape(-1, 2), pairs)
+    tvg = db.read_two_view_geometry(i1, i2)
+    db.close()
+    assert int(tvg.config) == (3 if model == "F" else 6)
+    assert np.array_equal(tvg.inlier_matches.astype(np.int64).reshape(-1, 2), pairs[inl])
+    Fc, Hc = colmap_pixel_geometry(g.F, g.H)
+    assert _scaled_equal(tvg.H, Hc, 1e-6)
+    assert (tvg.F is None) == (model == "H") and (model == "H" or _scaled_equal(tvg.F, Fc, 1e-6))
+
+
+@settings(max_examples=25, deadline=None)
+@given(n1=st.integers(1, 300), n2=st.integers(1, 300), frac=st.floats(0, 1), seed=st.integers(0, 2**31))
+def test_h5_rows_property(tmp_path_factory, n1, n2, frac, seed):
+    rng = np.random.default_rng(seed)
+    m = int(frac * min(n1, n2))
+    p, s = _random_matches(rng, n1, n2, m)
+    path = tmp_path_factory.mktemp("h5prop") / "m.h5"
+    with H5MatchesSink(path, {"x/1.jpg": n1, "y.jpg": n2}) as sink:
+        sink.write("x/1.jpg", "y.jpg", p, s)
+    got, gs, dtype, length = _hloc_get_matches(path, "x/1.jpg", "y.jpg")
+    assert length == n1 and dtype == np.int32
+    assert np.array_equal(got, p) and np.array_equal(gs, s)
