@@ -339,3 +339,14 @@ def test_single_camera_and_empty_image(tmp_path):
     cv2.imwrite(str(tmp_path / "img" / "big.png"), np.zeros((130, 170), np.uint8))
     with pytest.raises(InputError, match="single_camera"):
         images_to_database(tmp_path / "img", tmp_path / "db.db", single_camera=True, progress=False, resume=True)
+
+
+def test_colmap_float_descriptor_types(tmp_path):
+    """COLMAP 4 stores learned float descriptors (ALIKED) as raw bytes with their type: loaded as float32 (L2)."""
+    f = np.random.default_rng(0).normal(size=(10, 128)).astype(np.float32)
+    d = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.ALIKED_N32, f.view(np.uint8).reshape(10, -1))
+    _db_with(tmp_path / "aliked.db", [d, d])
+    src = ColmapSource(tmp_path / "aliked.db")
+    got = src.load("im1.png")
+    assert src.descriptor_kind == "aliked_n32" and not got.binary and np.array_equal(got.descriptors, f)
+    src.validate()
