@@ -149,7 +149,8 @@ class MatchSink:
     def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None,
               geometry=None) -> None:
         """Store the matches of one pair atomically (``pairs (M, 2)`` indices into name1's / name2's features,
-        ``scores (M,)`` higher = better, ``geometry`` a :class:`~guidedmatch.geometry.TwoViewGeometry` or None)."""
+        ``scores (M,)`` per-match values (the engine's descriptor distances), ``geometry`` a
+        :class:`~guidedmatch.geometry.TwoViewGeometry` or None)."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -389,7 +390,7 @@ def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
 class H5MatchesSink(MatchSink):
     """Write matches as an hloc ``matches.h5``: group ``names_to_pair(name1, name2)`` with ``matches0 (N1,) int32``
     (index into name2's features, -1 = unmatched; int32 holds any keypoint count, hloc's own int16 stops at
-    32,767) and ``matching_scores0 (N1,) float32`` (0 where unmatched).
+    32,767) and ``matching_scores0 (N1,) float32`` (the scores given to :meth:`write`, 0 where unmatched).
 
     Crash safety: writes are buffered and flushed every ``flush_every`` pairs (and on close) as a complete new
     segment file in ``<matches>.parts/`` (temp file + rename); :meth:`close` merges the existing ``matches.h5``
@@ -497,8 +498,11 @@ class H5MatchesSink(MatchSink):
               geometry=None) -> None:
         """Buffer one pair under ``names_to_pair(name1, name2)`` (``matches0`` over name1's features).
 
-        ``scores`` are stored as ``matching_scores0`` (hloc: higher = better). ``geometry`` is not stored (hloc
-        verifies in COLMAP at import). A pair already stored (either order) is replaced at close.
+        ``scores`` are stored as given in ``matching_scores0`` (0 where unmatched). hloc's learned matchers store
+        confidences there (higher = better); the collection engine passes descriptor distances (lower = better).
+        hloc's own pipeline reads them only through ``import_matches(min_match_score=...)``, off by default -- do
+        not set it on our files. ``geometry`` is not stored (hloc verifies in COLMAP at import). A pair already
+        stored (either order) is replaced at close.
         """
         if self._closed:
             raise OutputError(f"H5MatchesSink({self.path}) is closed")
