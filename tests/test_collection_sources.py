@@ -337,6 +337,10 @@ def test_single_camera_and_empty_image(tmp_path):
     db.close()
     src.validate()
     cv2.imwrite(str(tmp_path / "img" / "big.png"), np.zeros((130, 170), np.uint8))
+    only = images_to_database(tmp_path / "img", tmp_path / "only.db", image_names=["sub/flat.png"], progress=False)
+    assert only.names() == ["sub/flat.png"]
+    with pytest.raises(InputError, match="not files"):
+        images_to_database(tmp_path / "img", tmp_path / "x.db", image_names=["nope.png"], progress=False)
     with pytest.raises(InputError, match="single_camera"):
         images_to_database(tmp_path / "img", tmp_path / "db.db", single_camera=True, progress=False, resume=True)
 

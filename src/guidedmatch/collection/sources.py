@@ -536,7 +536,8 @@ def _colmap_descriptors(f: Features):
 def images_to_database(image_dir: str | os.PathLike, database_path: str | os.PathLike, *, detector: str = "sift",
                        max_features: int | None = None, max_image_size: int | None = None,
                        camera_model: str = "SIMPLE_RADIAL", single_camera: bool = False, progress: bool = True,
-                       detector_options: dict | None = None, resume: bool = False) -> ColmapSource:
+                       detector_options: dict | None = None, resume: bool = False,
+                       image_names=None) -> ColmapSource:
     """Detect the images of a folder with our detectors and store them in a new COLMAP database.
 
     Images (``IMAGE_EXTENSIONS``, searched recursively, names relative to ``image_dir`` with ``/``) are
@@ -550,6 +551,7 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
 
     Each image is written in one transaction, so an interrupted run leaves a valid database holding the images
     done so far; ``resume=True`` accepts an existing database and detects only the images it lacks.
+    ``image_names`` (paths relative to ``image_dir``) restricts the run to those images, in that order.
 
     Raises:
         OutputError: ``database_path`` exists (without ``resume``) or cannot be written.
@@ -575,7 +577,15 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
     image_dir, database_path = Path(image_dir), Path(database_path)
     if not image_dir.is_dir():
         raise InputError(f"image folder not found: {image_dir}")
-    names = _list_images(image_dir)
+    if image_names is None:
+        names = _list_images(image_dir)
+    else:
+        names = [Path(str(n)).as_posix() for n in image_names]
+        missing = [n for n in names if not (image_dir / n).is_file()]
+        if missing:
+            raise InputError(f"{len(missing)} of the image_names are not files in {image_dir}: {_examples(missing)}")
+        if len(set(names)) != len(names):
+            raise InputError("image_names has repeated names")
     if not names:
         raise InputError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in {image_dir}")
     if database_path.exists() and not resume:
