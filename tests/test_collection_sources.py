@@ -326,11 +326,12 @@ with ColmapSink({str(path)!r}) as sink:
 def test_single_camera_and_empty_image(tmp_path):
     img, _ = _blob_image(160, 120)
     (tmp_path / "img" / "sub").mkdir(parents=True)
-    cv2.imwrite(str(tmp_path / "img" / "a.png"), img)
-    cv2.imwrite(str(tmp_path / "img" / "sub" / "flat.png"), np.full((120, 160), 90, np.uint8))  # no features
+    cv2.imwrite(str(tmp_path / "img" / "a.png"), np.full((120, 160), 90, np.uint8))  # no features, listed first
+    cv2.imwrite(str(tmp_path / "img" / "sub" / "flat.png"), img)
     src = images_to_database(tmp_path / "img", tmp_path / "db.db", single_camera=True, progress=False)
-    assert src.names() == ["a.png", "sub/flat.png"] and src.num_features("sub/flat.png") == 0
-    empty = src.load("sub/flat.png")
+    assert src.names() == ["a.png", "sub/flat.png"] and src.num_features("a.png") == 0
+    assert src.descriptor_kind == "sift" and src.descriptor_bytes == 128
+    empty = src.load("a.png")
     assert len(empty) == 0 and empty.dim == 128
     db = pycolmap.Database.open(str(tmp_path / "db.db"))
     assert (db.num_cameras(), db.num_rigs(), db.num_frames(), db.num_images()) == (1, 1, 2, 2)

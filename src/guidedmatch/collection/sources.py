@@ -245,18 +245,19 @@ class ColmapSource(FeatureSource):
                                     f"({_examples(no_desc)}); run feature extraction first")
             if mismatch:
                 raise DatabaseError(f"{self.path}: keypoint and descriptor counts differ for {_examples(mismatch)}")
-            self._desc = self._read_descriptor_meta(db, self._names[0])
+            self._ref = next((n for n in self._names if self._counts[n] > 0), self._names[0])
+            self._desc = self._read_descriptor_meta(db, self._ref)
         finally:
             db.close()
 
     @property
     def descriptor_kind(self) -> str:
-        """Descriptor kind of the first image (``"sift"``, ``"orb"``, ...)."""
+        """Descriptor kind of the first image with features (``"sift"``, ``"orb"``, ...)."""
         return self._desc[0]
 
     @property
     def descriptor_bytes(self) -> int:
-        """Bytes per descriptor row of the first image."""
+        """Bytes per descriptor row of the first image with features."""
         return self._desc[1]
 
     def _read_descriptor_meta(self, db, name: str) -> tuple[str, int]:
@@ -304,7 +305,7 @@ class ColmapSource(FeatureSource):
         kind = _descriptor_kind(desc.type, nbytes)
         if len(data) and (kind, nbytes) != self._desc:
             raise InputError(f"{self.path}: mixed descriptor types: image {name!r} has {kind} ({nbytes} bytes), "
-                             f"image {self._names[0]!r} has {self._desc[0]} ({self._desc[1]} bytes); "
+                             f"image {self._ref!r} has {self._desc[0]} ({self._desc[1]} bytes); "
                              "one collection needs one descriptor type")
         if kind == "sift":
             descriptors = data.astype(np.float32)
@@ -340,7 +341,7 @@ class ColmapSource(FeatureSource):
             if self._counts[name] and meta != self._desc:
                 bad.append(f"{name} ({meta[0]}, {meta[1]} bytes)")
         if bad:
-            raise InputError(f"{self.path}: mixed descriptor types: {self._names[0]!r} has {self._desc[0]} "
+            raise InputError(f"{self.path}: mixed descriptor types: {self._ref!r} has {self._desc[0]} "
                              f"({self._desc[1]} bytes) but {_examples(bad)}; one collection needs one type")
 
 
