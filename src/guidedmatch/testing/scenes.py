@@ -19,18 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..epipolar import skew
+
 
 def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
     """Rodrigues rotation about a unit ``axis`` by ``angle`` radians."""
     axis = np.asarray(axis, float)
-    axis = axis / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    k = skew(axis / np.linalg.norm(axis))
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """``[v]_x`` such that ``skew(v) @ w == cross(v, w)``."""
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], float)
 
 
 def fundamental_from_pose(K1, K2, R, t) -> np.ndarray:
