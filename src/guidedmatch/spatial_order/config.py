@@ -18,11 +18,11 @@ class SpatialOrderConfig:
 
     Every field is checked in ``__post_init__``; a bad value raises :class:`~guidedmatch.errors.ConfigError`.
 
-    ``probability`` chooses the model of ``P(H | G)`` for the **per-match** probabilities
-    (``SpatialOrderModel.probabilities``, :func:`~guidedmatch.spatial_order.match_probabilities`). The overlap
-    window's self-consistency pass and the **search-range (gap) table** always use the Gaussian model: the exact
-    hypergeometric sums cost O(|S_beta| H) per cell, far too much for the (n+1)^2 cells of the table
-    (see ``docs/spatial_order.md``), so ``"exact"`` never changes which gaps are admitted.
+    ``probability`` chooses the model of ``P(H | G)`` for the reported **per-match** probabilities
+    (``SpatialOrderModel.probabilities``, :func:`~guidedmatch.spatial_order.match_probabilities`) only. The overlap
+    window's self-consistency pass, the order-noise estimate and the **search-range (gap) table** always use the
+    Gaussian model: the exact hypergeometric sums cost O(|S_beta| H) per cell, far too much for the (n+1)^2 cells
+    of the table (see ``docs/spatial_order.md``), so ``"exact"`` never changes the window or the admitted gaps.
 
     >>> SpatialOrderConfig(threshold=0.05).threshold
     0.05

@@ -292,17 +292,18 @@ def fit_spatial_order(x1, x2, config: SpatialOrderConfig | dict | None = None, *
         return _unusable(f"no significant order structure: K_hat={fit.k_hat:.3f} over {nw} matches "
                          f"({z:.1f} null sd below 1/2 < {z_crit:.1f})", n, config, sigma, r1, r2, fit.k_hat,
                          fit.n_good, timings)
-    prob_w = fit.prob
-    if config.probability != "gaussian":  # per-match probabilities of the chosen model (the table stays Gaussian)
-        prob_w = probability_correct(np.arange(nw), fit.sigma_w, fit.hl + fit.hr, nw - 1, fit.n_good, nw,
-                                     method=config.probability, num_beta=config.num_beta,
-                                     var_floor=config.var_floor)
+    prob_w = fit.prob  # Gaussian model: drives the order noise and (through it) the gap table
+    prob_out = prob_w  # the reported per-match probabilities, of the model config.probability
+    if config.probability != "gaussian":
+        prob_out = probability_correct(np.arange(nw), fit.sigma_w, fit.hl + fit.hr, nw - 1, fit.n_good, nw,
+                                       method=config.probability, num_beta=config.num_beta,
+                                       var_floor=config.var_floor)
     probs = np.zeros(n)
     # input match m with image-1 rank r1[m]; position of r1[m] in fit.ranks1
     pos = np.full(n, -1, dtype=np.int64)
     pos[fit.ranks1] = np.arange(nw)
     m_in = np.nonzero(in_window)[0]
-    probs[m_in] = prob_w[pos[r1[m_in]]]
+    probs[m_in] = prob_out[pos[r1[m_in]]]
     noise = OrderNoise(0.0, 0.0)
     if config.order_noise:
         if likely_correct is not None and len(likely_correct) == n:
@@ -356,7 +357,8 @@ def admissible_x_ranges(model: SpatialOrderModel, xq) -> tuple[np.ndarray, np.nd
     h = np.searchsorted(model.x1_sorted, xq, side="left")
     glo = model.gap_lo[h]
     ghi = model.gap_hi[h]
-    keep = (xq >= model.window1_x[0]) & (xq <= model.window1_x[1]) & (glo <= ghi)
+    x1_lo, x1_hi = model.window1_x
+    keep = (xq >= x1_lo) & (xq <= x1_hi) & (glo <= ghi)
     x2lo = np.concatenate([[-np.inf], model.x2_sorted])  # lower bound of gap k: x2_sorted[k-1]
     x2hi = np.concatenate([model.x2_sorted, [np.inf]])  # upper bound of gap k: x2_sorted[k]
     nw = model.n_window
