@@ -435,3 +435,26 @@ def test_config_from_dict_and_unknown_names():
     with pytest.raises(ConfigError, match="unknown SpatialOrderConfig option.*thresh.*valid: threshold"):
         fit_spatial_order(x, x, {"thresh": 0.05})
     assert SpatialOrderConfig(num_beta=np.int64(3)).num_beta == 3  # numpy integers are integers
+
+
+def test_numba_cache_is_used_by_a_second_process():
+    """cache=True survives the split into a subpackage: after one process has run a fit (compiling or loading),
+    a fresh process loads every dispatcher it calls from the on-disk cache and compiles nothing."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("from guidedmatch.spatial_order import fit_spatial_order, SpatialOrderConfig\n"
+            "from guidedmatch.testing.permutations import generate_permutation\n"
+            "sp = generate_permutation(200, 120, seed=0)\n"
+            "assert fit_spatial_order(sp.x1, sp.x2).usable\n"
+            "assert fit_spatial_order(sp.x1, sp.x2, SpatialOrderConfig(probability='exact')).usable\n")
+    env = {**os.environ, "NUMBA_DEBUG_CACHE": "1"}
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+            for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[-1].stderr[-2000:]
+    second = runs[1].stdout + runs[1].stderr
+    loaded = {line.split("_kernels.")[1].split("-")[0] for line in second.splitlines()
+              if "data loaded" in line and "spatial_order" in line and "_kernels." in line}
+    assert loaded == {"_inversions_dense", "_sweep_kendall", "_refine_window_nb", "_exact_lik_good", "_gap_kernel"}
+    assert "data saved" not in second and "index saved" not in second
