@@ -230,7 +230,7 @@ def match_bruteforce(d1, d2, *, ratio: float | None = 0.8, mutual: bool = False,
 
     Returns:
         :class:`MatchResult` with ``stats = {"comparisons": N1*N2, "time_s", "method": "bf", ...}``;
-        ``pairs`` is ``(0, 2)`` when nothing matches; ``distances`` are L2 (not squared) or Hamming bits.
+        ``pairs`` is ``(0, 2)`` when nothing matches.
     """
     d1 = getattr(d1, "descriptors", d1)
     d2 = getattr(d2, "descriptors", d2)

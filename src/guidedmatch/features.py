@@ -21,8 +21,6 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ImageReadError, InputError
-
 DETECTORS = ("sift", "orb", "akaze", "brisk")
 BINARY_KINDS = ("orb", "akaze", "brisk")
 
@@ -210,9 +208,7 @@ def load_image(image_or_path, grey: bool = True) -> np.ndarray:
     grey conversion, as hloc and the benchmarks use; for JPEG it decodes the luminance directly) else
     ``IMREAD_COLOR``; an array is converted with ``cv2.cvtColor``. The two grey conversions may differ by one
     grey level in some pixels (libpng / libjpeg round differently from ``cvtColor``).
-    Raises ``FileNotFoundError`` for a missing path, :class:`~guidedmatch.errors.ImageReadError` for a
-    directory, an unreadable or an empty image and :class:`~guidedmatch.errors.InputError` for an array with
-    NaN/inf or an unsupported channel count (both ``ValueError``).
+    Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unreadable or empty image.
     """
     import cv2
 
@@ -221,18 +217,18 @@ def load_image(image_or_path, grey: bool = True) -> np.ndarray:
         if not path.exists():
             raise FileNotFoundError(f"image not found: {path}")
         if path.is_dir():
-            raise ImageReadError(f"image path is a directory: {path}")
+            raise ValueError(f"image path is a directory: {path}")
         img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
         if img is None:
-            raise ImageReadError(f"cannot read image (unknown format or corrupt file): {path}")
+            raise ValueError(f"cannot read image (unknown format or corrupt file): {path}")
     else:
         img = np.asarray(image_or_path)
     if img.size == 0 or img.ndim < 2 or min(img.shape[:2]) == 0:
-        raise ImageReadError(f"empty image (shape {img.shape})")
+        raise ValueError(f"empty image (shape {img.shape})")
     if img.dtype != np.uint8:
         if np.issubdtype(img.dtype, np.floating):
             if not np.all(np.isfinite(img)):
-                raise InputError("image contains NaN/inf")
+                raise ValueError("image contains NaN/inf")
             scale = 255.0 if img.max() <= 1.0 else 1.0
             img = np.clip(img * scale, 0, 255).astype(np.uint8)
         elif img.dtype == np.uint16:
@@ -242,7 +238,7 @@ def load_image(image_or_path, grey: bool = True) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim == 3 and img.shape[2] not in (3, 4):
-        raise InputError(f"unsupported image channel count {img.shape[2]}")
+        raise ValueError(f"unsupported channel count {img.shape[2]}")
     if grey:
         if img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
