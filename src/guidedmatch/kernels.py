@@ -301,11 +301,9 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     such query exists). Only strips the region can touch are visited, and in each only the cells spanned by the
     band's extent; the predicate above is then tested exactly per scanned point.
 
-    ``desc1``/``desc2``: float32 rows, uint8 byte-valued rows or uint64 words. Returns ``(i1, d1, i2, d2, ncand)``:
-    original image-2 indices, ``d1, d2 (Q,) float32`` the raw :func:`desc_dist` values -- **squared** L2 for float32
-    rows (float sum of squared differences) and byte-valued rows (exact integer), Hamming bits for uint64 words
-    (the matcher takes the square root of the L2 ones) -- and ``ncand[q]`` = the exact number of descriptor
-    distances evaluated for query ``q``.
+    ``desc1``/``desc2``: float32 rows (squared L2), uint8 byte-valued rows (exact squared L2) or uint64 words
+    (Hamming). Returns ``(i1, d1, i2, d2, ncand)`` with original image-2 indices, raw ``desc_dist`` values, and
+    ``ncand[q]`` = the exact number of descriptor distances evaluated for query ``q``.
     """
     nq = queries.shape[0]
     i1 = np.full(nq, -1, np.int64)
