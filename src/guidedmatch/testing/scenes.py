@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..alignment import apply_homography
 from ..epipolar import skew
 
 
@@ -128,8 +129,7 @@ class TwoViewScene:
             sel = lab == k
             if not sel.any():
                 continue
-            p = np.c_[pts1[sel], np.ones(sel.sum())] @ H.T
-            out[sel] = p[:, :2] / p[:, 2:3]
+            out[sel] = apply_homography(H, pts1[sel])
         ok = np.isfinite(out).all(axis=1)
         h2, w2 = self.labels2.shape
         qx = np.rint(np.where(ok, out[:, 0], -1)).astype(int)
