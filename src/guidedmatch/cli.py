@@ -315,6 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--threads", type=_positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
     b.add_argument("--work", default=None, help="sfm: folder for the databases and models (default OUT/work; "
                    "extracted features are reused by a rerun)")
+    b.add_argument("--merge", action="store_true", help="sfm: keep the rows of an existing OUT/sfm.json that this run "
+                   "does not redo (e.g. after --methods X)")
     b.add_argument("--no-e2e", action="store_true", help="sfm: skip the end-to-end comparison (guidedmatch sfm vs "
                    "the pycolmap pipeline with COLMAP's matcher)")
     b.set_defaults(func=cmd_bench)

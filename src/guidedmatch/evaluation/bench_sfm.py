@@ -18,8 +18,8 @@ error, AUC@1/2/5 deg. Writes ``sfm.json`` (with run metadata), ``sfm.md`` and ``
 """
 from __future__ import annotations
 
+import datetime as _dt
 import json
-import os
 import shutil
 import sys
 import time
@@ -275,11 +275,21 @@ def plot_time_vs_inliers(rows: list[dict], path: Path) -> Path:
     return save_figure(fig, path)
 
 
+def _merge_rows(new: list[dict], old: list[dict]) -> list[dict]:
+    """``new`` plus the rows of ``old`` for (setting, method) not in ``new``, in table order."""
+    done = {(r["setting"], r["method"]) for r in new}
+    order = {key: i for i, key in enumerate((st, m) for st in FEATURE_SETTINGS for m in method_names())}
+    rows = list(new) + [r for r in old if (r["setting"], r["method"]) not in done]
+    return sorted(rows, key=lambda r: order.get((r["setting"], r["method"]), len(order)))
+
+
 def run(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads: int = 2, seed: int = 0,
         matcher: dict | None = None, workers: int | None = None, command: str = "", e2e: bool = True,
-        work: Path | None = None) -> dict:
+        work: Path | None = None, merge: bool = False) -> dict:
     """Run the benchmark; writes ``out/sfm.json``, ``out/sfm.md``, ``out/sfm_time_vs_inliers.png``. Databases and
-    models go to ``work`` (default ``out/work``; the extracted features of each setting are reused by a rerun)."""
+    models go to ``work`` (default ``out/work``; the extracted features of each setting are reused by a rerun).
+    ``merge``: keep the rows (and end-to-end rows) of an existing ``out/sfm.json`` that this run does not redo; each
+    row carries its own ``timestamp_utc``."""
     from ..errors import InputError
     from ..features import atomic_write_text
     from .meta import run_metadata, write_json
@@ -294,6 +304,11 @@ def run(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads:
     results = {"meta": run_metadata(seed), "command": command, "scene": str(scene), "threads": threads,
                "methods": methods, "settings": list(settings), "rows": rows, "end_to_end": None,
                "note": "wall-clock times on a machine shared with other jobs (2 cores); same features for all methods"}
+    old_rows, old_e2e = [], None
+    if merge and (out / "sfm.json").is_file():
+        old = json.loads((out / "sfm.json").read_text())
+        old_rows, old_e2e = old.get("rows", []), old.get("end_to_end")
+        results["merged_from"] = old.get("meta", {}).get("timestamp_utc")
     for setting in settings:
         base = work / setting / "features.db"
         base.parent.mkdir(parents=True, exist_ok=True)
@@ -309,7 +324,8 @@ def run(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads:
                 import traceback
 
                 r = {"method": method, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
-            r.update(setting=setting, keypoints=ext["keypoints"], images=len(gt))
+            r.update(setting=setting, keypoints=ext["keypoints"], images=len(gt),
+                     timestamp_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
             rows.append(r)
             if "error" in r:
                 _say(f"    failed: {r['error']}")
@@ -317,7 +333,9 @@ def run(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads:
                 _say(f"    {r['match_verify_s']:.2f} s, {r['verified_inliers']:,} inliers, {r['registered']}/{len(gt)} "
                      f"registered, {r['points3D']:,} points, median {r['median_pose_error_deg']:.3f} deg, "
                      f"AUC@1 {r['auc']['1']:.3f}")
-            write_json(out / "sfm.json", results)
+            write_json(out / "sfm.json", dict(results, rows=_merge_rows(rows, old_rows), end_to_end=old_e2e))
+    rows[:] = _merge_rows(rows, old_rows)
+    results["end_to_end"] = old_e2e
     if e2e:
         _say("[e2e] guidedmatch sfm vs the pycolmap pipeline with COLMAP's matcher, from empty folders")
         results["end_to_end"] = end_to_end(image_dir, gt, work, threads, seed)
@@ -356,6 +374,6 @@ def main(args) -> int:
 
             raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(method_names())}")
     res = run(scene, Path(args.out), settings=settings, methods=methods, threads=args.threads, seed=args.seed,
-              command="guidedmatch " + " ".join(sys.argv[1:]), e2e=not args.no_e2e, work=args.work)
+              command="guidedmatch " + " ".join(sys.argv[1:]), e2e=not args.no_e2e, work=args.work, merge=args.merge)
     print(markdown_table(res["rows"]))
     return 0
