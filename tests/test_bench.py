@@ -39,7 +39,9 @@ def test_bench_without_data_is_a_clean_error(tmp_path, capsys):
 
     rc = main(["bench", "oxford", "--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")])
     assert rc == 2
-    assert "guidedmatch: error:" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "guidedmatch: error: no evaluation data" in err and "nowhere" in err
+    assert not (tmp_path / "o").exists()  # checked before any work
 
 
 def test_summary_table_sums_like_the_paper():

@@ -11,7 +11,7 @@ needs_data = pytest.mark.skipif(ROOT is None, reason="evaluation data not found 
 def test_data_root_override_and_env(tmp_path, monkeypatch):
     monkeypatch.setenv("GUIDEDMATCH_DATA", str(tmp_path))
     assert data_root() == tmp_path
-    assert data_root(tmp_path / "x") in (None, tmp_path / "x")  # a missing override is never silently replaced
+    assert data_root(tmp_path / "x") == tmp_path / "x"  # a missing override is returned as is, never replaced
     with pytest.raises(FileNotFoundError, match="GUIDEDMATCH_DATA"):
         oxford_pairs(tmp_path / "missing")
 

@@ -273,6 +273,8 @@ def one_to_one(q: np.ndarray, j: np.ndarray, d: np.ndarray) -> np.ndarray:
     >>> one_to_one(np.array([0, 1, 2]), np.array([5, 5, 6]), np.array([2.0, 1.0, 3.0], np.float32))
     array([1, 2])
     """
+    if len(q) == 0:
+        return np.zeros(0, np.int64)
     o = np.lexsort((q, d, j))
     first = np.r_[True, np.diff(j[o]) != 0]
     return np.sort(o[first])
