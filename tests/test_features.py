@@ -55,15 +55,17 @@ def test_user_arrays_and_validation():
 
 
 def test_load_image_errors(tmp_path):
-    with pytest.raises(FileNotFoundError):
+    from guidedmatch.errors import ImageReadError
+
+    with pytest.raises(ImageReadError, match="not found"):
         load_image(tmp_path / "missing.png")
     bad = tmp_path / "bad.png"
     bad.write_bytes(b"not an image")
-    with pytest.raises(ValueError, match="cannot read"):
+    with pytest.raises(ImageReadError, match="cannot read"):
         load_image(bad)
-    with pytest.raises(ValueError, match="empty"):
+    with pytest.raises(ImageReadError, match="empty"):
         load_image(np.zeros((0, 10), np.uint8))
-    with pytest.raises(ValueError, match="directory"):
+    with pytest.raises(ImageReadError, match="directory"):
         load_image(tmp_path)
 
 
