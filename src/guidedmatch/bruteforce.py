@@ -18,7 +18,6 @@ index is the nearest neighbour.
 """
 from __future__ import annotations
 
-import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -109,20 +108,26 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     return out, col
 
 
-@functools.lru_cache(maxsize=1)
-def _blas_controller():
-    """One ``threadpoolctl.ThreadpoolController`` per process (inspecting the loaded libraries takes ~2 ms).
+_CONTROLLER: list = [None, -1]  # [ThreadpoolController, len(sys.modules) when it was built]
 
-    SciPy's BLAS is loaded first (Numba's linear algebra and our geometry use it), so it is limited as well; a BLAS
-    loaded later by other code is not seen by this controller.
+
+def _blas_controller():
+    """A ``threadpoolctl.ThreadpoolController`` of the BLAS libraries loaded now (inspecting them takes ~2 ms).
+
+    Rebuilt only when modules were imported since the last call (a new extension module -- faiss, another SciPy
+    -- may bring its own BLAS, which a stale controller would leave multi-threaded). SciPy's BLAS is loaded first
+    (Numba's linear algebra and our geometry use it), so it is limited as well.
     """
     import importlib
-
-    from threadpoolctl import ThreadpoolController
+    import sys
 
     importlib.import_module("scipy.linalg")  # loads SciPy's OpenBLAS before the libraries are listed
+    if _CONTROLLER[0] is None or _CONTROLLER[1] != len(sys.modules):
+        from threadpoolctl import ThreadpoolController
 
-    return ThreadpoolController()
+        _CONTROLLER[0] = ThreadpoolController()
+        _CONTROLLER[1] = len(sys.modules)
+    return _CONTROLLER[0]
 
 
 class DenseKnn2:
