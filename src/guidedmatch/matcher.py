@@ -354,15 +354,18 @@ class _GuidedRun:
         self.no_strips = kernels.build_strips(np.zeros((0, 2)), 1.0)
 
     def fallback(self, what: str, reason: str) -> None:
+        """Report a degraded step (:class:`~guidedmatch.results.Fallback`)."""
         self.fallbacks.append(Fallback(what, reason, len(self.updates)))
 
     def account(self, nq: int, ncomp: int) -> None:
+        """Count ``nq`` queries and ``ncomp`` descriptor distances in the current phase (= updates done)."""
         k = len(self.updates)
         self.phase_queries[k] = self.phase_queries.get(k, 0) + int(nq)
         self.phase_comparisons[k] = self.phase_comparisons.get(k, 0) + int(ncomp)
 
     # ------------------------------------------------------------------------------------------ the method
     def run(self) -> MatchResult:
+        """The method: steps 1-8 of the module doc, in order (one method each, below in the same order)."""
         t_start = time.perf_counter()
         order = self.draw_order()
         got = _Collected()
@@ -680,6 +683,7 @@ class _GuidedRun:
         return out
 
     def result(self, t_start, models, q, j, d, flags, dropped_recheck, dropped_o2o, dropped_mutual) -> MatchResult:
+        """Step 8: the MatchResult with its :class:`~guidedmatch.results.MatchStats` (every count of the run)."""
         n1, n2 = len(self.d1), len(self.d2)
         nphase = len(self.updates) + 1
         phase_comparisons = tuple(self.phase_comparisons.get(k, 0) for k in range(nphase))
