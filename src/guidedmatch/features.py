@@ -214,9 +214,14 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def load_image(image_or_path, grey: bool = True) -> np.ndarray:
-    """Read an image as ``uint8``; grey ``(h, w)`` when ``grey`` else ``(h, w, 3)`` BGR.
+    """Read an image as ``uint8``; grey ``(h, w)`` when ``grey`` else ``(h, w, 3)`` BGR. The one image reader
+    of the package (CLI, :func:`detect`, the evaluation datasets).
 
-    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255).
+    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255, uint16 to the
+    high byte). A file is decoded by ``cv2.imread`` with ``IMREAD_GRAYSCALE`` when ``grey`` (the decoder's own
+    grey conversion, as hloc and the benchmarks use; for JPEG it decodes the luminance directly) else
+    ``IMREAD_COLOR``; an array is converted with ``cv2.cvtColor``. The two grey conversions may differ by one
+    grey level in some pixels (libpng / libjpeg round differently from ``cvtColor``).
     Raises :class:`~guidedmatch.errors.ImageReadError` for a missing, unreadable or empty image.
     """
     import cv2
@@ -227,7 +232,7 @@ def load_image(image_or_path, grey: bool = True) -> np.ndarray:
             raise ImageReadError(f"image not found: {path}")
         if path.is_dir():
             raise ImageReadError(f"image path is a directory: {path}")
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
         if img is None:
             raise ImageReadError(f"cannot read image (unknown format or corrupt file): {path}")
     else:
