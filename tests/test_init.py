@@ -13,6 +13,8 @@ API = ["detect", "Features", "match", "MatcherConfig", "MatchResult", "MatchStat
 
 
 def test_the_api_is_one_namespace():
+    for name in gm.__all__:  # every listed name resolves
+        getattr(gm, name)
     for name in API:
         assert name in gm.__all__ and name in dir(gm), name
         assert getattr(gm, name) is not None
