@@ -277,19 +277,44 @@ def test_one_to_one_equals_reference(n, data):
     assert one_to_one(q, j, d).tolist() == _one_to_one_reference(q, j, d)
 
 
-@settings(max_examples=50, deadline=None)
-@given(data=st.data())
-def test_mutual_check_equals_reference(data):
+def _hamming_rows(a, b):
+    return np.unpackbits(a ^ b, axis=-1).sum(-1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), binary=st.booleans())
+def test_mutual_check_equals_reference(data, binary):
     n1, n2 = data.draw(st.integers(1, 12)), data.draw(st.integers(1, 12))
-    d1 = data.draw(arrays(np.float32, (n1, 4), elements=st.integers(0, 3).map(float)))
-    d2 = data.draw(arrays(np.float32, (n2, 4), elements=st.integers(0, 3).map(float)))
+    if binary:  # packed bits, Hamming
+        d1 = data.draw(arrays(np.uint8, (n1, 2), elements=st.sampled_from([0, 1, 3, 255])))
+        d2 = data.draw(arrays(np.uint8, (n2, 2), elements=st.sampled_from([0, 1, 3, 255])))
+        dist = lambda a, b: _hamming_rows(a, b)  # noqa: E731
+    else:
+        d1 = data.draw(arrays(np.float32, (n1, 4), elements=st.integers(0, 3).map(float)))
+        d2 = data.draw(arrays(np.float32, (n2, 4), elements=st.integers(0, 3).map(float)))
+        dist = lambda a, b: ((a - b) ** 2).sum(-1)  # noqa: E731
     m = data.draw(st.integers(0, n1))
     q = np.arange(m, dtype=np.int64)
     j = data.draw(arrays(np.int64, m, elements=st.integers(0, n2 - 1)))
     sel, comps = mutual_check(d1, d2, q, j)
-    ref = [k for k in range(m) if np.argmin(((d1 - d2[j[k]]) ** 2).sum(1)) == q[k]]  # argmin: lowest index on ties
+    ref = [k for k in range(m) if np.argmin(dist(d1, d2[j[k]])) == q[k]]  # argmin: lowest index on ties
     assert sel.tolist() == ref
     assert comps == len(np.unique(j)) * n1
+
+
+@pytest.mark.parametrize("mode", ["bf", "so+epi+ia"])
+def test_mutual_means_the_full_mutual_check_in_every_mode(scene_and_features, mode):
+    _, f1, f2 = scene_and_features
+    base = match(f1, f2, mode, FAST.replace(one_to_one=False))
+    mut = match(f1, f2, mode, FAST.replace(one_to_one=False, mutual=True))
+    d1, d2 = f1.descriptors.astype(np.float64), f2.descriptors.astype(np.float64)
+    nearest_i = np.argmin((d1 ** 2).sum(1)[None, :] - 2 * d2[base.pairs[:, 1]] @ d1.T, axis=1)  # over ALL of image 1
+    ok = nearest_i == base.pairs[:, 0]
+    assert 0 < ok.sum() < len(base)
+    np.testing.assert_array_equal(mut.pairs, base.pairs[ok])
+    assert mut.stats.dropped_by_mutual == len(base) - ok.sum()
+    if mode != "bf":  # the reverse search is counted
+        assert mut.stats.comparisons == base.stats.comparisons + len(np.unique(base.pairs[:, 1])) * len(f1)
 
 
 def _in_final_region_reference(models, i, j):

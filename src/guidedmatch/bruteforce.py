@@ -252,11 +252,13 @@ def match_bruteforce(d1, d2, *, ratio: float | None = 0.8, mutual: bool = False,
     d1c, d2c, binary = check_descriptors(d1, d2)
     n1, n2 = len(d1c), len(d2c)
     (i1, s1, _i2, s2), col = knn2(d1c, d2c, memory_budget_mb=memory_budget_mb, want_column_best=mutual)
-    pairs, dist, _ = select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance,
-                                    mutual_best=col[0] if mutual else None)
+    pairs, dist, keep = select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance,
+                                       mutual_best=col[0] if mutual else None)
+    dropped_mutual = int(select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance)[2].sum() - keep.sum()) \
+        if mutual else 0
     dt = time.perf_counter() - t0
     stats = MatchStats(method="bf", comparisons=int(n1) * int(n2), time_s=dt, num_features=(n1, n2),
-                       metric="hamming" if binary else "l2",
+                       metric="hamming" if binary else "l2", dropped_by_mutual=dropped_mutual,
                        details=dict(ratio=ratio, mutual=mutual, max_distance=max_distance,
                                     block_rows=None if binary else block_rows(n2, memory_budget_mb)))
     return MatchResult(pairs, dist, stats)
