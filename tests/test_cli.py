@@ -135,3 +135,17 @@ def test_other_exceptions_are_internal_errors_exit_1(image_files, capsys, monkey
     assert err.startswith("guidedmatch: internal error: RuntimeError: simulated bug") and "Traceback" not in err
     with pytest.raises(RuntimeError, match="simulated bug"):
         main(["--debug"] + args)
+
+
+def test_unwritable_output_is_a_user_error_before_any_work(image_files, tmp_path, capsys, monkeypatch):
+    import guidedmatch.features as features
+
+    monkeypatch.setattr(features, "detect", lambda *a, **k: (_ for _ in ()).throw(AssertionError("detection ran")))
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    a, b = str(image_files / "a.png"), str(image_files / "b.png")
+    for args in (["match", a, b, "-o", str(blocker / "m.npz")], ["match", a, b, "--plot", str(blocker / "p.png")],
+                 ["demo", "--out", str(blocker / "demo")]):
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert err.startswith("guidedmatch: error: cannot create output folder") and err.count("\n") == 1

@@ -87,6 +87,20 @@ def matcher_config(items: list[str] | None) -> MatcherConfig:
         raise ConfigError(f"bad --config: {exc}") from None
 
 
+def writable_folder(folder) -> Path:
+    """``folder`` exists (created if needed) and is writable, else OutputError -- checked before any work."""
+    import os
+
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"output folder {folder} is not a writable folder")
+    return folder
+
+
 def _detect_both(img1, img2, detector, max_features, options):
     from .features import detect
 
@@ -112,6 +126,9 @@ def cmd_match(args) -> int:
         raise ConfigError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
     if args.output and Path(args.output).suffix.lower() not in OUTPUT_FORMATS:
         raise OutputError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
+    for path in (args.output, args.plot):
+        if path:
+            writable_folder(Path(path).parent)
 
     img1 = load_image(args.img1)
     img2 = load_image(args.img2)
@@ -150,7 +167,7 @@ def cmd_demo(args) -> int:
     from .matcher import match
     from .testing.scenes import make_scene
 
-    out = Path(args.out)
+    out = writable_folder(args.out)
     w, h = args.size
     print(f"[1/4] rendering a synthetic two-view scene {w}x{h}, camera roll {args.roll:g} deg (seed {args.seed})")
     scene = make_scene((w, h), roll_deg=args.roll, seed=args.seed)
@@ -197,7 +214,8 @@ def cmd_experiment(args) -> int:
     if args.which == "alignment":
         from .evaluation.alignment_sim import run_alignment_experiment
 
-        summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=Path(args.out), seed=args.seed, progress=True)
+        summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=writable_folder(args.out), seed=args.seed,
+                                           progress=True)
         if isinstance(summary, dict) and summary.get("table_md"):
             print(summary["table_md"])
         print(f"wrote results to {args.out}")
@@ -208,6 +226,7 @@ def cmd_experiment(args) -> int:
 def cmd_bench(args) -> int:
     from .evaluation.bench import run_benchmarks
 
+    writable_folder(args.out)
     run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
                    detector=args.detector, seed=args.seed)
     return 0
