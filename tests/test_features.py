@@ -77,3 +77,53 @@ def test_unknown_detector_and_bad_option(small_scene):
         detect(small_scene.image1, "surf")
     with pytest.raises(ValueError, match="invalid option"):
         detect(small_scene.image1, "sift", noSuchOption=3)
+
+
+# ------------------------------------------------------------------ strict image reading (issue 14)
+def _encoded(ext, rng):
+    import cv2
+
+    img = (rng.integers(0, 255, (96, 128)) // 32 * 32).astype(np.uint8)
+    ok, buf = cv2.imencode(ext, cv2.GaussianBlur(img, (5, 5), 1.5))
+    assert ok
+    return buf.tobytes()
+
+
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+@pytest.mark.parametrize("keep", [0.3, 0.9, -2])
+def test_truncated_images_are_image_read_errors_naming_the_file(tmp_path, rng, ext, keep):
+    from guidedmatch.errors import ImageReadError
+
+    data = _encoded(ext, rng)
+    n = len(data) + keep if keep < 0 else int(len(data) * keep)
+    path = tmp_path / f"cut{ext}"
+    path.write_bytes(data[:n])
+    with pytest.raises(ImageReadError, match=r"truncated or corrupt: .*cut\%s" % ext):
+        load_image(path)
+    whole = tmp_path / f"whole{ext}"
+    whole.write_bytes(data)
+    assert load_image(whole).shape == (96, 128)
+
+
+def test_corrupt_jpeg_data_is_an_error_not_a_partial_decode(tmp_path, rng, capfd):
+    from guidedmatch.errors import ImageReadError
+
+    data = bytearray(_encoded(".jpg", rng))
+    # a marker inside the entropy-coded data: libjpeg warns "Corrupt JPEG data: premature end of data segment" and
+    # fills the rest with grey. (Bytes changed to other valid-looking data cannot be detected: JPEG has no checksum.)
+    data[len(data) // 2: len(data) // 2 + 2] = b"\xff\xd9"
+    (tmp_path / "c.jpg").write_bytes(bytes(data))
+    with pytest.raises(ImageReadError, match="c.jpg"):
+        load_image(tmp_path / "c.jpg")
+    assert "Corrupt JPEG" not in capfd.readouterr().err  # captured into the error, not printed
+
+
+def test_missing_image_is_both_image_read_error_and_file_not_found(tmp_path):
+    from guidedmatch.errors import ImageReadError
+
+    with pytest.raises(ImageReadError) as e:
+        load_image(tmp_path / "nope.jpg")
+    assert isinstance(e.value, FileNotFoundError) and "nope.jpg" in str(e.value)
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(ImageReadError, match="empty"):
+        load_image(tmp_path / "empty.png")

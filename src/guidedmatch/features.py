@@ -13,13 +13,18 @@ This is step 1 of the method (Teng & Dong §III-A, "Feature Detection": any dete
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import re
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .errors import ImageReadError, InputError
 
 DETECTORS = ("sift", "orb", "akaze", "brisk")
 BINARY_KINDS = ("orb", "akaze", "brisk")
@@ -199,31 +204,122 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
         raise
 
 
+class ImageNotFoundError(ImageReadError, FileNotFoundError):
+    """An image path that does not exist (an :class:`~guidedmatch.errors.ImageReadError` and a FileNotFoundError)."""
+
+
+#: decoder messages (libjpeg, libpng, libtiff, libwebp through OpenCV) that mean the pixels are incomplete or wrong
+_CORRUPT_MESSAGE = re.compile(r"premature end|corrupt|truncat|read error|crc error|invalid|bogus|not a jpeg|"
+                              r"unsupported marker|bad huffman|incorrect|error", re.IGNORECASE)
+_BENIGN_MESSAGE = re.compile(r"iCCP|sRGB|known incorrect|unknown field|TIFFReadDirectory: Warning", re.IGNORECASE)
+
+
+@contextlib.contextmanager
+def _capture_native_stderr():
+    """Collect what native code (libjpeg, libpng: ``fprintf(stderr, ...)``) writes to file descriptor 2 meanwhile.
+
+    Yields a list that receives the captured text on exit. Falls back to no capture when fd 2 is unavailable.
+    """
+    out: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield out
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield out
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            out.append(tmp.read().decode("utf-8", "replace"))
+
+
+def read_image_strict(path: str | os.PathLike, flags: int | None = None) -> np.ndarray:
+    """Decode an image file completely or raise :class:`~guidedmatch.errors.ImageReadError` -- never a partial decode.
+
+    OpenCV's JPEG reader returns the decoded part of a truncated file (libjpeg only warns "Premature end of JPEG
+    file" on stderr and fills the rest with grey) and lets corrupt entropy-coded data through with "Corrupt JPEG
+    data: ..." warnings. Here the decoder's messages are captured during ``cv2.imread``: a message about missing or
+    corrupt data (premature end, corrupt, truncated, CRC or read error) is an error naming the file; benign ones
+    (e.g. libpng's "iCCP: known incorrect sRGB profile") are passed on to stderr unchanged. A PNG must also end with
+    its ``IEND`` chunk and a JPEG must contain an end-of-image marker.
+
+    Args:
+        path: image file.
+        flags: ``cv2.imread`` flags (default ``cv2.IMREAD_UNCHANGED``).
+
+    Returns:
+        the decoded array as ``cv2.imread`` gives it.
+
+    >>> import tempfile, cv2, numpy as np, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> ok, buf = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (64, 64), np.uint8))
+    >>> _ = (d / "cut.jpg").write_bytes(buf.tobytes()[: len(buf) // 2])
+    >>> read_image_strict(d / "cut.jpg")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    guidedmatch.errors.ImageReadError: image file is truncated or corrupt: .../cut.jpg (decoder: ...)
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.exists():
+        raise ImageNotFoundError(f"image not found: {path}")
+    if path.is_dir():
+        raise ImageReadError(f"image path is a directory: {path}")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ImageReadError(f"cannot read image file {path}: {exc.strerror or exc}") from None
+    if len(data) == 0:
+        raise ImageReadError(f"image file is empty: {path}")
+    problem = None
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-64:]:
+        problem = "PNG without its IEND chunk"
+    elif data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[2:]:
+        problem = "JPEG without an end-of-image marker"
+    buf = np.frombuffer(data, np.uint8)
+    with _capture_native_stderr() as captured:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED if flags is None else flags)
+    text = "".join(captured).strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    bad = [ln for ln in lines if _CORRUPT_MESSAGE.search(ln) and not _BENIGN_MESSAGE.search(ln)]
+    for ln in lines:
+        if ln not in bad:
+            print(ln, file=sys.stderr)
+    if bad:
+        problem = "; ".join(dict.fromkeys(bad))
+    if problem is not None:
+        raise ImageReadError(f"image file is truncated or corrupt: {path} (decoder: {problem})")
+    if img is None:
+        raise ImageReadError(f"cannot read image (unknown format or corrupt file): {path}")
+    return img
+
+
 def load_image(image_or_path, grey: bool = True) -> np.ndarray:
     """Read an image as ``uint8``; grey ``(h, w)`` when ``grey`` else ``(h, w, 3)`` BGR.
 
-    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255).
-    Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unreadable or empty image.
+    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255). Files are decoded
+    completely or not at all (:func:`read_image_strict`): a truncated or corrupt file raises
+    :class:`~guidedmatch.errors.ImageReadError` (a ``ValueError``); a missing path raises :class:`ImageNotFoundError`
+    (also a ``FileNotFoundError``); an empty array raises :class:`~guidedmatch.errors.ImageReadError`.
     """
     import cv2
 
     if isinstance(image_or_path, (str, os.PathLike)):
-        path = Path(image_or_path)
-        if not path.exists():
-            raise FileNotFoundError(f"image not found: {path}")
-        if path.is_dir():
-            raise ValueError(f"image path is a directory: {path}")
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise ValueError(f"cannot read image (unknown format or corrupt file): {path}")
+        img = read_image_strict(image_or_path)
     else:
         img = np.asarray(image_or_path)
     if img.size == 0 or img.ndim < 2 or min(img.shape[:2]) == 0:
-        raise ValueError(f"empty image (shape {img.shape})")
+        raise ImageReadError(f"empty image (shape {img.shape})")
     if img.dtype != np.uint8:
         if np.issubdtype(img.dtype, np.floating):
             if not np.all(np.isfinite(img)):
-                raise ValueError("image contains NaN/inf")
+                raise InputError("image contains NaN/inf")
             scale = 255.0 if img.max() <= 1.0 else 1.0
             img = np.clip(img * scale, 0, 255).astype(np.uint8)
         elif img.dtype == np.uint16:
@@ -233,7 +329,7 @@ def load_image(image_or_path, grey: bool = True) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim == 3 and img.shape[2] not in (3, 4):
-        raise ValueError(f"unsupported channel count {img.shape[2]}")
+        raise InputError(f"unsupported channel count {img.shape[2]}")
     if grey:
         if img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
