@@ -46,26 +46,35 @@ def to_json(obj, **kw) -> str:
     return json.dumps(obj, default=json_default, **kw)
 
 
-def write_matches(path: Path, result, f1, f2) -> None:
-    """Write matches as ``.npz`` / ``.csv`` / ``.json`` (by suffix), atomically."""
+def write_matches(path: Path, result, f1, f2, geometry=None, verified=None) -> None:
+    """Write matches as ``.npz`` / ``.csv`` / ``.json`` (by suffix), atomically.
+
+    ``geometry``: the pair's :class:`~guidedmatch.geometry.TwoViewGeometry` (stored as ``stats["geometry"]``);
+    ``verified``: optional ``(M,) bool`` per match (``--keep-unverified``: a ``verified`` array / column).
+    """
     from .features import atomic_savez, atomic_write_text
 
     pairs, dist = result.pairs, result.distances
     p1 = f1.keypoints[pairs[:, 0]] if len(pairs) else np.zeros((0, 2))
     p2 = f2.keypoints[pairs[:, 1]] if len(pairs) else np.zeros((0, 2))
     suffix = path.suffix.lower()
-    stats_json = to_json(result.stats)
+    stats = dict(result.stats)
+    if geometry is not None:
+        stats["geometry"] = geometry.to_dict()
+    stats_json = to_json(stats)
+    extra = {} if verified is None else {"verified": np.asarray(verified, bool)}
     if suffix == ".npz":
         atomic_savez(path, pairs=pairs, distances=dist, points1=p1, points2=p2,
-                     keypoints1=f1.keypoints, keypoints2=f2.keypoints, stats=np.array(stats_json))
+                     keypoints1=f1.keypoints, keypoints2=f2.keypoints, stats=np.array(stats_json), **extra)
     elif suffix == ".csv":
-        lines = ["i1,i2,x1,y1,x2,y2,distance"]
-        lines += [f"{a},{b},{x1:.3f},{y1:.3f},{x2:.3f},{y2:.3f},{d:.4f}"
-                  for (a, b), (x1, y1), (x2, y2), d in zip(pairs, p1, p2, dist)]
+        v = extra.get("verified")
+        lines = ["i1,i2,x1,y1,x2,y2,distance" + (",verified" if v is not None else "")]
+        lines += [f"{a},{b},{x1:.3f},{y1:.3f},{x2:.3f},{y2:.3f},{d:.4f}" + ("" if v is None else f",{int(v[k])}")
+                  for k, ((a, b), (x1, y1), (x2, y2), d) in enumerate(zip(pairs, p1, p2, dist))]
         atomic_write_text(path, "\n".join(lines) + "\n")
     elif suffix == ".json":
         atomic_write_text(path, to_json(dict(pairs=pairs, distances=dist, points1=p1, points2=p2,
-                                             stats=result.stats), indent=1))
+                                             stats=stats, **extra), indent=1))
     else:
         raise CLIError(f"unknown output format {suffix!r}: use .npz, .csv or .json")
 
@@ -106,45 +115,152 @@ def run_mode(f1, f2, mode: str, config_overrides: dict | None = None, return_mod
     return matcher.match(f1, f2, mode=mode, config=config, return_models=return_models)
 
 
-def _detect_both(img1, img2, detector, max_features, options):
-    from .features import detect
+def _detect_both(img1, img2, detector, max_features, options, max_image_size=None, names=("IMG1", "IMG2")):
+    from .features import check_detect_memory, detect, downscale_for_detection
 
-    f1 = detect(img1, detector, max_features, **options)
-    f2 = detect(img2, detector, max_features, **options)
-    for name, f in (("IMG1", f1), ("IMG2", f2)):
+    feats = []
+    for img, name in zip((img1, img2), names):
+        h, w = img.shape[:2]
+        if max_image_size and max(w, h) > max_image_size:
+            s = max_image_size / max(w, h)
+            w, h = max(1, round(w * s)), max(1, round(h * s))
+        check_detect_memory(w, h, detector, name)  # MemoryLimitError with a suggested --max-image-size
+        feats.append(detect(img, detector, max_features, max_image_size=max_image_size, **options))
+    for name, f in zip(names, feats):
         if len(f) == 0:
             raise CLIError(f"no features detected in {name} ({detector}); the image may be blank or too small")
-    return f1, f2
+    return feats[0], feats[1]
+
+
+def _check_config(mode: str, overrides: dict) -> None:
+    """Validate ``--config`` before any work (same construction :func:`run_mode` does later)."""
+    if mode not in MODES:
+        raise CLIError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
+    if not _has_matcher():
+        return
+    from . import matcher
+
+    try:
+        matcher.GuidedMatcher(matcher.MatcherConfig(**overrides))
+    except TypeError as exc:
+        names = ", ".join(f.name for f in dataclasses.fields(matcher.MatcherConfig))
+        raise CLIError(f"bad --config: {exc}. Known keys: {names}") from None
+
+
+def _check_input_image(path: str, what: str) -> None:
+    from .errors import ImageReadError
+    from .features import ImageNotFoundError
+
+    p = Path(path)
+    if not p.exists():
+        raise ImageNotFoundError(f"{what} not found: {p}")
+    if p.is_dir():
+        raise ImageReadError(f"{what} is a folder, not an image: {p}")
+
+
+def fallback_lines(fallbacks) -> list[str]:
+    """Each distinct fallback once, with how often it occurred: ``"what: reason (x3)"``."""
+    counts: dict[tuple, int] = {}
+    for fb in fallbacks or []:
+        key = (fb.get("what"), fb.get("reason"))
+        counts[key] = counts.get(key, 0) + 1
+    return [f"{w}: {r}" + (f" (x{n})" if n > 1 else "") for (w, r), n in counts.items()]
+
+
+def pair_geometry(result, f1, f2):
+    """The two-view verdict of a match result: ``result.geometry`` when the matcher provides it, else
+    :func:`~guidedmatch.geometry.two_view_geometry` decided on the matches made before any model was fitted
+    (``flags["phase"] == 0``: unguided nearest neighbours, so the test is not biased by the guidance) and reported
+    over all matches."""
+    geo = getattr(result, "geometry", None)
+    if geo is not None:
+        return geo
+    from .geometry import two_view_geometry
+
+    p = result.pairs
+    x1, x2 = f1.keypoints[p[:, 0]], f2.keypoints[p[:, 1]]
+    phase = result.flags.get("phase")
+    ev = np.ones(len(p), bool) if phase is None else np.asarray(phase) == 0
+    return two_view_geometry(x1[ev], x2[ev], f1.image_size, f2.image_size, report_on=(x1, x2))
+
+
+def _subset_result(result, keep: np.ndarray):
+    from .results import MatchResult
+
+    return MatchResult(result.pairs[keep], result.distances[keep], result.stats,
+                       {k: np.asarray(v)[keep] for k, v in result.flags.items()})
 
 
 # --------------------------------------------------------------------------- commands
 def cmd_match(args) -> int:
-    from .features import load_image
+    from .features import check_detector_options, check_output_path, load_image
 
+    # -- every argument and path problem is found here, before any image is read
     if args.show_regions and not args.plot:
         raise CLIError("--show-regions needs --plot OUT.png")
     if args.show_regions and args.mode == "bf":
         raise CLIError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
     if args.output and Path(args.output).suffix.lower() not in (".npz", ".csv", ".json"):
         raise CLIError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
+    if args.keep_unverified and not args.output:
+        raise CLIError("--keep-unverified needs -o OUT")
+    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg"):
+        raise CLIError(f"unknown plot format {Path(args.plot).suffix!r}: use .png, .pdf, .svg or .jpg")
+    options = check_detector_options(args.detector, _parse_kv(args.detector_option, "--detector-option"))
+    overrides = _parse_kv(args.config, "--config")
+    _check_config(args.mode, overrides)
+    _check_input_image(args.img1, "IMG1")
+    _check_input_image(args.img2, "IMG2")
+    if args.output:
+        check_output_path(args.output, "-o/--output")
+    if args.plot:
+        check_output_path(args.plot, "--plot")
 
     img1 = load_image(args.img1)
     img2 = load_image(args.img2)
     t0 = time.perf_counter()
-    f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, _parse_kv(args.detector_option, "--detector-option"))
+    f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, options, args.max_image_size,
+                          (args.img1, args.img2))
     t_det = time.perf_counter() - t0
-    result, models = run_mode(f1, f2, args.mode, _parse_kv(args.config, "--config"), return_models=True)
+    compile_s, during = 0.0, 0.0
+    if _has_matcher():
+        from . import matcher
+        from .jit import compile_monitor, warm_up
+
+        compile_s = warm_up(f1, f2, args.mode, matcher.MatcherConfig(**overrides))
+        with compile_monitor() as cm:
+            result, models = run_mode(f1, f2, args.mode, overrides, return_models=True)
+        during = cm.seconds
+    else:
+        result, models = run_mode(f1, f2, args.mode, overrides, return_models=True)
     st = result.stats
-    print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s)")
+    geo = pair_geometry(result, f1, f2)
+    scaled = ""
+    if args.max_image_size and max(max(f.image_size) for f in (f1, f2)) > args.max_image_size:
+        scaled = f", detected at long side <= {args.max_image_size} px, coordinates in original pixels"
+    print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s{scaled})")
     print(f"mode          : {args.mode}")
     print(f"matches       : {len(result)}")
+    if geo:
+        print(f"verdict       : verified ({geo.model}): {geo.num_inliers} of {len(result)} matches geometrically verified")
+    else:
+        label = "no overlap" if geo.verdict == "no-overlap" else "too few matches"
+        print(f"verdict       : {label}: 0 geometrically verified matches ({geo.reason})")
     print(f"comparisons   : {st['comparisons']:,} ({100.0 * st['comparisons'] / max(1, len(f1) * len(f2)):.2f} % of brute force)")
-    print(f"matching time : {st['time_s']:.3f} s")
-    for fb in st.get("fallbacks", []):
-        print(f"fallback      : {fb.get('what')}: {fb.get('reason')}")
+    jit_note = ""
+    if compile_s or during:
+        jit_note = f" (Numba compilation excluded: {compile_s + during:.1f} s, first run only)"
+    print(f"matching time : {max(0.0, st['time_s'] - during):.3f} s{jit_note}")
+    for line in fallback_lines(st.get("fallbacks", [])):
+        print(f"fallback      : {line}")
+    inl = np.asarray(geo.inliers, bool) if len(geo.inliers) == len(result) else np.zeros(len(result), bool)
     if args.output:
-        write_matches(Path(args.output), result, f1, f2)
-        print(f"wrote         : {args.output}")
+        out = result if args.keep_unverified else _subset_result(result, inl)
+        write_matches(Path(args.output), out, f1, f2, geometry=geo,
+                      verified=inl if args.keep_unverified else None)
+        what = f"{len(out)} matches, {int(inl.sum())} verified" if args.keep_unverified else \
+            f"{len(out)} verified matches" + ("" if geo else "; --keep-unverified writes the unverified ones")
+        print(f"wrote         : {args.output} ({what})")
     if args.plot:
         from . import plots
 
@@ -153,8 +269,10 @@ def cmd_match(args) -> int:
                 raise CLIError("--show-regions needs a guided mode whose models were fitted (see the fallbacks above)")
             plots.search_regions(args.plot, img1, img2, f1, f2, result, models)
         else:
-            plots.motion_field(args.plot, img1, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
-                               None, f"{args.mode}: {len(result)} matches")
+            verdict = (f"{geo.num_inliers} verified ({geo.model})" if geo else
+                       ("no overlap" if geo.verdict == "no-overlap" else "too few matches") + ": 0 verified")
+            plots.match_pair(args.plot, img1, img2, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
+                             inl, f"{args.mode}: {len(result)} matches, {verdict}")
         print(f"wrote         : {args.plot}")
     return 0
 
@@ -275,8 +393,13 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--max-features", type=_positive_int, default=None, help="keep at most N strongest features per image")
     m.add_argument("--detector-option", action="append", metavar="KEY=VALUE", help="OpenCV detector option, e.g. contrastThreshold=0.01 (repeatable)")
     m.add_argument("--config", action="append", metavar="KEY=VALUE", help="matcher config override, e.g. ratio=0.9 (repeatable)")
-    m.add_argument("-o", "--output", help="write matches to .npz, .csv or .json")
-    m.add_argument("--plot", help="write a motion-field PNG")
+    m.add_argument("--max-image-size", type=_positive_int, default=None, metavar="PX",
+                   help="detect on a copy downscaled to this long side (keypoints still in original pixels); "
+                        "needed for very large images (the memory check suggests a size)")
+    m.add_argument("-o", "--output", help="write the geometrically verified matches to .npz, .csv or .json")
+    m.add_argument("--keep-unverified", action="store_true",
+                   help="with -o: write every match, with a 'verified' flag, also when the images do not overlap")
+    m.add_argument("--plot", help="write a PNG of both images with the matches (inliers / outliers of the verdict)")
     m.add_argument("--show-regions", action="store_true", help="with --plot: draw the search regions of a few features instead")
     m.set_defaults(func=cmd_match)
 

@@ -899,7 +899,9 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
                     if nr == cap:
                         cap *= 2
                         new = np.empty((cap, 2), dtype=np.int64)
-                        new[:nr] = runs[:nr]
+                        for r in range(nr):  # element copy: a 2-D slice assignment costs ~4 s of first compile
+                            new[r, 0] = runs[r, 0]  # (Numba's broadcast checks format shape strings)
+                            new[r, 1] = runs[r, 1]
                         runs = new
                     runs[nr, 0] = k
                     nr += 1
