@@ -187,7 +187,13 @@ def check_output_path(path: str | os.PathLike, what: str = "output") -> Path:
     ...
     guidedmatch.errors.OutputError: cannot write -o /proc/m.csv: folder /proc does not accept new files (No such file or directory)
     """
-    path = Path(path)
+    try:
+        return _check_output_path(Path(path), what)
+    except OSError as exc:  # e.g. a folder on the way that cannot be searched
+        raise OutputError(f"cannot write {what} {path}: {exc.strerror or exc}") from None
+
+
+def _check_output_path(path: Path, what: str) -> Path:
     if path.is_dir():
         raise OutputError(f"cannot write {what} {path}: it is a folder")
     parent = path.parent if str(path.parent) else Path(".")
