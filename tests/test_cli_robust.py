@@ -221,3 +221,50 @@ def test_first_run_compilation_is_excluded_and_announced(small_scene_features, c
     with jit.compile_monitor() as cm:
         match(f1, f2, "so+epi+ia")
     assert cm.count == 0  # everything the run needs was compiled (or loaded) by the warm-up
+
+
+# ------------------------------------------------------------------ CLI fuzz over corrupted image bytes
+@pytest.fixture(scope="module")
+def encoded_images(small_scene):
+    img = cv2.resize(small_scene.image1, (160, 120), interpolation=cv2.INTER_AREA)
+    return {ext: cv2.imencode(ext, img)[1].tobytes() for ext in (".jpg", ".png")}
+
+
+def _mutate(data: bytes, op: str, pos: float, payload: bytes) -> bytes:
+    i = int(pos * len(data))
+    if op == "truncate":
+        return data[:i]
+    if op == "overwrite":
+        return data[:i] + payload + data[i + len(payload):]
+    if op == "insert":
+        return data[:i] + payload + data[i:]
+    if op == "delete":
+        return data[:i] + data[i + max(1, len(payload)):]
+    return payload + data[len(payload):]  # clobber the header
+
+
+def test_cli_fuzz_corrupted_image_bytes_exit_0_or_2_without_traceback(encoded_images, files, tmp_path_factory):
+    import contextlib
+    import io
+
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    d = tmp_path_factory.mktemp("fuzz")
+
+    @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(ext=st.sampled_from([".jpg", ".png"]), op=st.sampled_from(["truncate", "overwrite", "insert", "delete", "header"]),
+           pos=st.floats(0, 1), payload=st.binary(min_size=0, max_size=64))
+    def run(ext, op, pos, payload):
+        path = d / f"x{ext}"
+        path.write_bytes(_mutate(encoded_images[ext], op, pos, payload))
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc = main(["match", str(path), str(files / "a.png"), "--mode", "so+epi+ia", "--max-features", "300"])
+        text = err.getvalue()
+        assert rc in (0, 2), (rc, text)
+        assert "Traceback" not in text and "internal error" not in text
+        if rc == 2:
+            assert text.startswith("guidedmatch: error:") and text.count("\n") == 1, text
+
+    run()

@@ -265,7 +265,7 @@ class ImageNotFoundError(ImageReadError, FileNotFoundError):
 
 #: decoder messages (libjpeg, libpng, libtiff, libwebp through OpenCV) that mean the pixels are incomplete or wrong
 _CORRUPT_MESSAGE = re.compile(r"premature end|corrupt|truncat|read error|crc error|invalid|bogus|not a jpeg|"
-                              r"unsupported marker|bad huffman|incorrect|error", re.IGNORECASE)
+                              r"unsupported marker|bad huffman|incorrect|incomplete|error", re.IGNORECASE)
 _BENIGN_MESSAGE = re.compile(r"iCCP|sRGB|known incorrect|unknown field|TIFFReadDirectory: Warning", re.IGNORECASE)
 
 
@@ -343,15 +343,14 @@ def read_image_strict(path: str | os.PathLike, flags: int | None = None) -> np.n
     text = "".join(captured).strip()
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     bad = [ln for ln in lines if _CORRUPT_MESSAGE.search(ln) and not _BENIGN_MESSAGE.search(ln)]
-    for ln in lines:
-        if ln not in bad:
-            print(ln, file=sys.stderr)
     if bad:
-        problem = "; ".join(dict.fromkeys(bad))
+        problem = "; ".join(dict.fromkeys(re.sub(r"^\[ ?WARN:[^\]]*\]\s*", "", ln) for ln in bad))
     if problem is not None:
         raise ImageReadError(f"image file is truncated or corrupt: {path} (decoder: {problem})")
     if img is None:
         raise ImageReadError(f"cannot read image (unknown format or corrupt file): {path}")
+    for ln in lines:  # benign decoder warnings of a complete image are passed on
+        print(ln, file=sys.stderr)
     return img
 
 
