@@ -190,6 +190,16 @@ def estimate_fundamental(
         :class:`FundamentalResult` (truthy), or a falsy :class:`Failure` when there are fewer than 8
         correspondences, non-finite coordinates, collinear points, when USAC finds no model, the
         model has rank < 2, or fewer than 8 inliers support it.
+
+    >>> import numpy as np
+    >>> from guidedmatch.testing.twoview import general_pair
+    >>> s = general_pair(rng=0, n_points=200, noise=0.3)          # known F, 0.3 px noise
+    >>> x2 = s.x2n.copy(); x2[:40] = np.random.default_rng(1).uniform(0, 640, (40, 2))   # 20 % outliers
+    >>> res = estimate_fundamental(s.x1n, x2)
+    >>> bool(res), res.F.shape, bool(res.inliers[:40].sum() < 5), bool(res.inliers[40:].mean() > 0.95)
+    (True, (3, 3), True, True)
+    >>> estimate_fundamental(s.x1n[:5], x2[:5]).reason
+    'fewer than 8 correspondences (5)'
     """
     t0 = time.perf_counter()
     if method not in USAC_METHODS:
