@@ -268,3 +268,27 @@ def test_cli_fuzz_corrupted_image_bytes_exit_0_or_2_without_traceback(encoded_im
             assert text.startswith("guidedmatch: error:") and text.count("\n") == 1, text
 
     run()
+
+
+def test_match_reports_compilation_apart_from_time_s(small_scene_features, monkeypatch):
+    import time as _time
+
+    from guidedmatch import jit, matcher
+
+    class Fake(jit.CompileMonitor):  # a run during which 5 s of compilation happened
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.seconds = 5.0
+
+    import contextlib
+
+    @contextlib.contextmanager
+    def fake_monitor(note=True, stream=None):
+        yield Fake(note=False)
+
+    monkeypatch.setattr(matcher, "compile_monitor", fake_monitor)
+    f1, f2 = small_scene_features
+    t = _time.perf_counter()
+    res = matcher.match(f1, f2, "so+epi+ia")
+    wall = _time.perf_counter() - t
+    assert wall < 5.0 and res.stats.details["jit_compile_s"] == 5.0 and res.stats.time_s == 0.0  # clamped at 0

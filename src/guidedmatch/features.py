@@ -117,13 +117,34 @@ class Features:
         """From user arrays: ``keypoints (N,2)`` pixels, ``descriptors (N,D)``, ``image_size (w,h)``.
 
         ``uint8`` descriptors with ``kind="user"`` are treated as packed binary (Hamming); pass
-        float descriptors for L2.
+        float descriptors for L2. ``**extra``: optional ``scales``, ``angles``, ``responses`` (each ``(N,)``).
+
+        **Responses drive the draw order.** The guided matcher draws image-1 features group by group, strongest
+        detector response first (Teng & Dong §III-A), and fits its first models on the earliest correspondences.
+        Without ``responses`` (the default here, unlike :meth:`from_cv` and :func:`detect`, which keep
+        ``cv2.KeyPoint.response``) -- or when all responses are equal -- the order inside each group is a seeded
+        random permutation (``MatcherConfig.seed``), so the models, and hence the matches, differ slightly from a
+        run on the same arrays with responses: Oxford graf 1-2, SIFT, ``so+epi+ia``: 1,189 matches with
+        responses, 1,185 / 1,197 / 1,193 without (seeds 0 / 1 / 2); issue 14 saw 1,467 vs 1,426 on another
+        pair. Results are deterministic for a given seed either way; pass ``responses=`` to reproduce a
+        ``detect`` / ``from_cv`` run exactly.
+
+        >>> import numpy as np
+        >>> f = Features.from_arrays(np.zeros((3, 2)), np.ones((3, 8), np.float32), (10, 10))
+        >>> f.responses is None, f.binary
+        (True, False)
         """
         return cls(keypoints, descriptors, tuple(image_size), kind, **extra)
 
     @classmethod
     def from_cv(cls, keypoints: list, descriptors: np.ndarray | None, image_size, kind: str = "user") -> "Features":
-        """From a list of ``cv2.KeyPoint`` and the descriptor array OpenCV returned (may be None)."""
+        """From a list of ``cv2.KeyPoint`` and the descriptor array OpenCV returned (may be None).
+
+        Keeps ``pt`` (keypoints), ``size`` (scales), ``angle`` and ``response``: the responses set the matcher's
+        draw order (strongest first within each x-group), so ``from_cv`` reproduces :func:`detect` exactly, while
+        :meth:`from_arrays` on the same arrays without ``responses=`` draws in a seeded random order and can give
+        slightly different matches (see :meth:`from_arrays`).
+        """
         n = len(keypoints)
         if descriptors is None:
             descriptors = np.zeros((0, 32), np.uint8) if kind in BINARY_KINDS else np.zeros((0, 128), np.float32)

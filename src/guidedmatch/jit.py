@@ -26,7 +26,7 @@ from contextlib import contextmanager
 import numpy as np
 from numba.core import event
 
-__all__ = ["CompileMonitor", "compile_monitor", "warm_up", "NOTE", "WARM_UP_FEATURES"]
+__all__ = ["CompileMonitor", "compile_monitor", "warm_up", "exclude_compile_time", "NOTE", "WARM_UP_FEATURES"]
 
 NOTE = ("guidedmatch: compiling Numba kernels for this descriptor type (first run only; cached for later runs, "
         "and not counted in the reported times) ...")
@@ -73,6 +73,19 @@ def compile_monitor(note: bool = True, stream=None):
     mon = CompileMonitor(note, stream)
     with event.install_listener("numba:compile", mon):
         yield mon
+
+
+def exclude_compile_time(result, seconds: float):
+    """``result`` with ``stats.time_s`` reduced by ``seconds`` of compilation that happened during the run, which
+    is reported as ``stats.details["jit_compile_s"]`` instead (unchanged when ``seconds`` is 0)."""
+    if not seconds:
+        return result
+    import dataclasses
+
+    st = result.stats
+    details = {**st.details, "jit_compile_s": float(seconds)}
+    stats = dataclasses.replace(st, time_s=max(0.0, st.time_s - seconds), details=details)
+    return dataclasses.replace(result, stats=stats)
 
 
 def _strongest(f, n: int):
