@@ -577,8 +577,8 @@ def check_detect_memory(width: int, height: int, method: str, what: str = "image
     if need > budget:
         size = suggest_max_image_size(width, height, method, budget)
         raise MemoryLimitError(
-            f"{method} detection on {what} ({width}x{height}) needs about {need / 2**30:.1f} GB, more than the "
-            f"{budget / 2**30:.1f} GB available; downscale for detection with max_image_size={size} "
+            f"{method} detection on {what} ({width}x{height}) needs about {need / 1e9:.1f} GB, more than the "
+            f"{budget / 1e9:.1f} GB available (80 % of {avail / 1e9:.1f} GB free); downscale for detection with max_image_size={size} "
             f"(CLI: --max-image-size {size})")
 
 
