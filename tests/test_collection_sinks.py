@@ -35,7 +35,7 @@ def base(tmp_path_factory):
     fa, fb = src.load(a), src.load(b)
     r = match(fa, fb)
     g = two_view_geometry(fa.keypoints[r.pairs[:, 0]], fb.keypoints[r.pairs[:, 1]], fa.image_size, fb.image_size)
-    assert g and g.num_inliers > 30
+    assert g and g.model == "F" and g.H is not None and g.num_inliers > 30  # both F and H rows get exercised
     return root / "db.db", mv, src, r, g
 
 
@@ -75,21 +75,32 @@ def test_colmap_round_trip(base, db_copy):
     kp1 = db.read_keypoints(i1)[:, :2].astype(float)
     kp2 = db.read_keypoints(i2)[:, :2].astype(float)
     db.close()
-    if g.model == "F":
-        # F in COLMAP pixels: the inliers' COLMAP keypoints satisfy it as ours satisfy g.F in OpenCV pixels
-        x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)]
-        x2 = np.c_[kp2[tvg.inlier_matches[:, 1]], np.ones(g.num_inliers)]
-        l2 = x1 @ tvg.F.T
-        d = np.abs(np.sum(x2 * l2, 1)) / np.hypot(l2[:, 0], l2[:, 1])
-        assert np.median(d) < 1.0
-        fa, fb = src.load(a), src.load(b)
-        y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)]
-        y2 = np.c_[fb.keypoints[r.pairs[g.inliers, 1]], np.ones(g.num_inliers)]
-        l2c = y1 @ g.F.T
-        dc = np.abs(np.sum(y2 * l2c, 1)) / np.hypot(l2c[:, 0], l2c[:, 1])
-        assert np.allclose(d, dc, atol=1e-3)  # float32 keypoints in the db
-    if g.H is not None:
-        assert _scaled_equal(tvg.H, colmap_pixel_geometry(None, g.H)[1])
+    # F in COLMAP pixels: the inliers' COLMAP keypoints satisfy it as ours satisfy g.F in OpenCV pixels
+    x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)]
+    x2 = np.c_[kp2[tvg.inlier_matches[:, 1]], np.ones(g.num_inliers)]
+    l2 = x1 @ tvg.F.T
+    d = np.abs(np.sum(x2 * l2, 1)) / np.hypot(l2[:, 0], l2[:, 1])
+    assert np.median(d) < 1.0
+    fa, fb = src.load(a), src.load(b)
+    y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)]
+    y2 = np.c_[fb.keypoints[r.pairs[g.inliers, 1]], np.ones(g.num_inliers)]
+    l2c = y1 @ g.F.T
+    dc = np.abs(np.sum(y2 * l2c, 1)) / np.hypot(l2c[:, 0], l2c[:, 1])
+    assert np.allclose(d, dc, atol=1e-3)  # float32 keypoints in the db
+    assert _scaled_equal(tvg.H, colmap_pixel_geometry(None, g.H)[1])
+    # the same matches as a planar verdict: config 6 (PLANAR_OR_PANORAMIC), H maps COLMAP pixels of the inliers
+    gh = TwoViewGeometry("verified", "H", None, g.H, g.inliers, g.num_inliers, g.num_matches, "planar")
+    with ColmapSink(db_copy) as sink:
+        sink.write(b, a, r.pairs[:, ::-1], None, _reversed(gh))
+    db = pycolmap.Database.open(str(db_copy))
+    tvg = db.read_two_view_geometry(i1, i2)
+    db.close()
+    assert int(tvg.config) == 6 and tvg.F is None
+    assert np.array_equal(tvg.inlier_matches.astype(np.int64), r.pairs[g.inliers])
+    x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)] @ tvg.H.T
+    fa, fb = src.load(a), src.load(b)
+    y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)] @ g.H.T
+    assert np.allclose(x1[:, :2] / x1[:, 2:3] - 0.5, y1[:, :2] / y1[:, 2:3], atol=1e-3)
 
 
 def test_colmap_reversed_pair_stored_canonically(base, db_copy, tmp_path):
@@ -150,6 +161,14 @@ def test_colmap_unverified_pair_and_resume(base, db_copy):
     with ColmapSink(db_copy) as sink:  # a new run sees the pair as done
         assert sink.done_pairs() == {frozenset((a, c))}
         assert sink.done_pairs([(a, c), (mv.names[1], a)]) == {frozenset((a, c))}
+    b = mv.names[1]
+    few = TwoViewGeometry("too-few-matches", "none", None, None, np.zeros(0, bool), 0, 0, "no matches")
+    with ColmapSink(db_copy) as sink:
+        sink.write(a, b, np.zeros((0, 2), np.int64), np.zeros(0, np.float32), few)
+        assert sink.done_pairs() == {frozenset((a, b)), frozenset((a, c))}  # small db: exact, pair by pair
+        assert sink.done_pairs([(b, a), (mv.names[1], c)]) == {frozenset((a, b))}
+        sink.EXACT_PAIRS = 0  # pycolmap's bulk readers skip rows with 0 matches and no matrix (documented)
+        assert sink.done_pairs() == {frozenset((a, c))}
     with ColmapSink(db_copy, overwrite=True) as sink:
         assert sink.done_pairs() == set()
     db = pycolmap.Database.open(str(db_copy))
@@ -335,6 +354,7 @@ def test_h5_resume_after_crash(tmp_path):
     assert not (tmp_path / "m.h5").exists()
     with H5MatchesSink(tmp_path / "m.h5", nf) as again:
         assert again.done_pairs() == {frozenset(names[0:2]), frozenset(names[1:3])}
+        assert again.done_pairs([(names[2], names[1]), (names[4], names[5])]) == {frozenset(names[1:3])}
         p, s = _random_matches(rng, 100, 100, 10)
         again.write(names[3], names[2], p, s)
         again.write(names[1], names[0], p, s)  # the other order of a stored pair: replaces it
@@ -375,3 +395,130 @@ def test_h5_sink_from_source(base, tmp_path):
     got, _, _, length = _hloc_get_matches(tmp_path / "m.h5", a, b)
     assert length == src.num_features(a) and np.array_equal(got, r.pairs[np.argsort(r.pairs[:, 0])])
     assert isinstance(src, ColmapSource)
+
+
+def _synthetic_db(path, n_images=24, n_kp=200):
+    db = pycolmap.Database.open(str(path))
+    cid = db.write_camera(pycolmap.Camera.create_from_model_name(0, "PINHOLE", 100.0, 64, 48))
+    rng = np.random.default_rng(0)
+    for k in range(n_images):
+        iid = db.write_image(pycolmap.Image(name=f"im{k:02d}.png", camera_id=cid))
+        db.write_keypoints(iid, rng.uniform(0, 48, (n_kp, 2)).astype(np.float32))
+        db.write_descriptors(iid, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
+                                                              rng.integers(0, 255, (n_kp, 128), dtype=np.uint8)))
+    db.close()
+
+
+def test_colmap_sink_survives_kill_9(tmp_path):
+    """kill -9 while a process writes pair after pair: every stored pair has both rows, consistent; resume works."""
+    import signal
+
+    path = tmp_path / "db.db"
+    _synthetic_db(path)
+    code = f"""
+import numpy as np
+from guidedmatch.collection.pairs import exhaustive_pairs
+from guidedmatch.collection.sinks import ColmapSink
+from guidedmatch.geometry import TwoViewGeometry
+names = [f"im{{k:02d}}.png" for k in range(24)]
+rng = np.random.default_rng(1)
+with ColmapSink({str(path)!r}) as sink:
+    for k, (a, b) in enumerate(exhaustive_pairs(names).pairs[::-1]):
+        m = np.c_[rng.permutation(200)[:150], rng.permutation(200)[:150]]
+        inl = rng.random(150) < 0.5
+        g = TwoViewGeometry("verified", "F", rng.normal(size=(3, 3)), None, inl, int(inl.sum()), 150, "x")
+        sink.write(a, b, m, None, g)
+        print(k, flush=True)
+"""
+    proc = subprocess.Popen([sys.executable, "-c", f"import sys; sys.path.insert(0, {os.path.abspath(SRC)!r})\n"
+                             + code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        for _ in range(40):  # let it store ~40 pairs, then kill it mid-stream
+            proc.stdout.readline()
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    db = pycolmap.Database.open(str(path))
+    match_ids = set(db.read_num_matches()[0])
+    geo_ids = set(db.read_two_view_geometry_num_inliers()[0])
+    assert match_ids == geo_ids and len(match_ids) >= 40
+    for pid in match_ids:
+        i1, i2 = pycolmap.pair_id_to_image_pair(pid)
+        m = {tuple(r) for r in db.read_matches(i1, i2)}
+        inl = db.read_two_view_geometry(i1, i2).inlier_matches
+        assert len(m) == 150 and {tuple(r) for r in inl} <= m and len(inl) > 0
+    db.close()
+    with ColmapSink(path) as sink:
+        assert len(sink.done_pairs()) == len(match_ids)
+
+
+def test_mapper_runs_on_our_geometry_without_verification(tmp_path):
+    """Rendered collection -> our database -> matches + our two-view geometries -> pycolmap.incremental_mapping
+    registers every view of the connected sequence; pairs without overlap get no inliers."""
+    from guidedmatch.collection.pairs import exhaustive_pairs
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(seed=1)
+    write_views(mv, tmp_path / "img")
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", progress=False)
+    with ColmapSink(tmp_path / "db.db") as sink:
+        for a, b in exhaustive_pairs(src.names()):
+            fa, fb = src.load(a), src.load(b)
+            r = match(fa, fb)
+            g = two_view_geometry(fa.keypoints[r.pairs[:, 0]], fb.keypoints[r.pairs[:, 1]], fa.image_size,
+                                  fb.image_size)
+            sink.write(a, b, r.pairs, r.distances, g)
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    with_inliers = {frozenset(map(int, pycolmap.pair_id_to_image_pair(p)))
+                    for p in db.read_two_view_geometry_num_inliers()[0]}
+    ids = {im.name: im.image_id for im in db.read_all_images()}
+    db.close()
+    for i, j in mv.non_overlapping_pairs():
+        assert frozenset((ids[mv.names[i]], ids[mv.names[j]])) not in with_inliers
+    recs = pycolmap.incremental_mapping(tmp_path / "db.db", tmp_path / "img", tmp_path / "sparse")
+    assert len(recs) == 1
+    rec = next(iter(recs.values()))
+    registered = {im.name for im in rec.images.values() if im.has_pose}
+    assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), m=st.integers(0, 120), reverse=st.booleans(), model=st.sampled_from("FH"))
+def test_colmap_rows_property(tmp_path_factory, seed, m, reverse, model):
+    """Random matches / inliers / models written in either order read back in COLMAP's canonical form."""
+    path = tmp_path_factory.mktemp("prop") / "db.db"
+    _synthetic_db(path, n_images=3, n_kp=150)
+    rng = np.random.default_rng(seed)
+    pairs = np.c_[rng.permutation(150)[:m], rng.permutation(150)[:m]].astype(np.int64)  # (im00, im02)
+    inl = rng.random(m) < 0.6
+    F, H = rng.normal(size=(3, 3)), rng.normal(size=(3, 3)) + 3 * np.eye(3)
+    g = TwoViewGeometry("verified", model, F if model == "F" else None, H, inl, int(inl.sum()), m, "x")
+    with ColmapSink(path) as sink:
+        if reverse:
+            sink.write("im02.png", "im00.png", pairs[:, ::-1], None, _reversed(g))
+        else:
+            sink.write("im00.png", "im02.png", pairs, None, g)
+    db = pycolmap.Database.open(str(path))
+    i1, i2 = db.read_image_with_name("im00.png").image_id, db.read_image_with_name("im02.png").image_id
+    assert np.array_equal(db.read_matches(i1, i2).astype(np.int64).reshape(-1, 2), pairs)
+    tvg = db.read_two_view_geometry(i1, i2)
+    db.close()
+    assert int(tvg.config) == (3 if model == "F" else 6)
+    assert np.array_equal(tvg.inlier_matches.astype(np.int64).reshape(-1, 2), pairs[inl])
+    Fc, Hc = colmap_pixel_geometry(g.F, g.H)
+    assert _scaled_equal(tvg.H, Hc, 1e-6)
+    assert (tvg.F is None) == (model == "H") and (model == "H" or _scaled_equal(tvg.F, Fc, 1e-6))
+
+
+@settings(max_examples=25, deadline=None)
+@given(n1=st.integers(1, 300), n2=st.integers(1, 300), frac=st.floats(0, 1), seed=st.integers(0, 2**31))
+def test_h5_rows_property(tmp_path_factory, n1, n2, frac, seed):
+    rng = np.random.default_rng(seed)
+    m = int(frac * min(n1, n2))
+    p, s = _random_matches(rng, n1, n2, m)
+    path = tmp_path_factory.mktemp("h5prop") / "m.h5"
+    with H5MatchesSink(path, {"x/1.jpg": n1, "y.jpg": n2}) as sink:
+        sink.write("x/1.jpg", "y.jpg", p, s)
+    got, gs, dtype, length = _hloc_get_matches(path, "x/1.jpg", "y.jpg")
+    assert length == n1 and dtype == np.int32
+    assert np.array_equal(got, p) and np.array_equal(gs, s)

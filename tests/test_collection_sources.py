@@ -15,6 +15,8 @@ from guidedmatch.collection.sources import (ColmapSource, H5Source, images_to_da
 from guidedmatch.errors import ConfigError, DatabaseError, ImageReadError, InputError, OutputError
 from guidedmatch.features import Features, detect
 
+SRC = str(__import__("pathlib").Path(__file__).resolve().parents[1] / "src")
+
 
 def _blob_image(w=320, h=240, seed=0):
     """Gaussian blobs at known sub-pixel centres (OpenCV convention: pixel (i, j) centre = (j, i))."""
@@ -283,3 +285,73 @@ def test_open_source_dispatch(tmp_path, blob_db):
         open_source(tmp_path / "x.bin")
     with pytest.raises(DatabaseError, match="not found"):
         open_source(tmp_path / "nothing.db")
+
+
+def test_open_while_a_sink_writes(views, tmp_path):
+    """Opening runs COLMAP's schema set-up, refused by SQLite during another connection's write transaction:
+    ColmapSource waits while a guidedmatch sink holds the write lock, and reads through open connections."""
+    import subprocess
+    import sys
+    import time
+
+    mv, img_dir = views
+    path = tmp_path / "db.db"
+    early = images_to_database(img_dir, path, max_features=200, progress=False)
+    early.load(mv.names[0])  # connection opened before the writer starts
+    code = f"""
+import sys, time, numpy as np, pycolmap
+sys.path.insert(0, {str(SRC)!r})
+from guidedmatch.collection.sinks import ColmapSink
+with ColmapSink({str(path)!r}) as sink:
+    with pycolmap.DatabaseTransaction(sink._db):
+        sink._db.write_matches(1, 2, np.zeros((1, 2), np.uint32))
+        print("IN", flush=True)
+        time.sleep(1.5)
+    print("OUT", flush=True)
+"""
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "IN"
+        t0 = time.monotonic()
+        assert len(early.load(mv.names[1])) > 0  # WAL: an open connection reads during the write
+        assert time.monotonic() - t0 < 1.0
+        src = ColmapSource(path)  # waits for the transaction to end
+        assert time.monotonic() - t0 > 0.5 and src.names() == list(mv.names)
+        assert proc.stdout.readline().strip() == "OUT"
+    finally:
+        proc.wait(timeout=30)
+    assert proc.returncode == 0
+
+
+def test_single_camera_and_empty_image(tmp_path):
+    img, _ = _blob_image(160, 120)
+    (tmp_path / "img" / "sub").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "img" / "a.png"), np.full((120, 160), 90, np.uint8))  # no features, listed first
+    cv2.imwrite(str(tmp_path / "img" / "sub" / "flat.png"), img)
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", single_camera=True, progress=False)
+    assert src.names() == ["a.png", "sub/flat.png"] and src.num_features("a.png") == 0
+    assert src.descriptor_kind == "sift" and src.descriptor_bytes == 128
+    empty = src.load("a.png")
+    assert len(empty) == 0 and empty.dim == 128
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    assert (db.num_cameras(), db.num_rigs(), db.num_frames(), db.num_images()) == (1, 1, 2, 2)
+    db.close()
+    src.validate()
+    cv2.imwrite(str(tmp_path / "img" / "big.png"), np.zeros((130, 170), np.uint8))
+    only = images_to_database(tmp_path / "img", tmp_path / "only.db", image_names=["sub/flat.png"], progress=False)
+    assert only.names() == ["sub/flat.png"]
+    with pytest.raises(InputError, match="not files"):
+        images_to_database(tmp_path / "img", tmp_path / "x.db", image_names=["nope.png"], progress=False)
+    with pytest.raises(InputError, match="single_camera"):
+        images_to_database(tmp_path / "img", tmp_path / "db.db", single_camera=True, progress=False, resume=True)
+
+
+def test_colmap_float_descriptor_types(tmp_path):
+    """COLMAP 4 stores learned float descriptors (ALIKED) as raw bytes with their type: loaded as float32 (L2)."""
+    f = np.random.default_rng(0).normal(size=(10, 128)).astype(np.float32)
+    d = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.ALIKED_N32, f.view(np.uint8).reshape(10, -1))
+    _db_with(tmp_path / "aliked.db", [d, d])
+    src = ColmapSource(tmp_path / "aliked.db")
+    got = src.load("im1.png")
+    assert src.descriptor_kind == "aliked_n32" and not got.binary and np.array_equal(got.descriptors, f)
+    src.validate()

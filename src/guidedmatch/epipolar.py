@@ -39,6 +39,8 @@ __all__ = [
     "in_band",
     "transform_fundamental",
     "check_points",
+    "map_points",
+    "skew",
 ]
 
 #: Minimum number of correspondences accepted by :func:`estimate_fundamental` (8-point solver size).
@@ -85,6 +87,17 @@ class FundamentalResult:
 
 
 # ----------------------------------------------------------------------------------------- helpers
+def skew(v) -> np.ndarray:
+    """``[v]_x``, the ``(3, 3) float64`` cross-product matrix of a 3-vector: ``skew(v) @ w == cross(v, w)``
+    (used in ``F = K2^-T [t]_x R K1^-1`` and ``E = [t]_x R``).
+
+    >>> skew([1.0, 2.0, 3.0]) @ [4.0, 5.0, 6.0]  # = cross((1, 2, 3), (4, 5, 6))
+    array([-3.,  6., -3.])
+    """
+    x, y, z = np.asarray(v, dtype=np.float64).reshape(3)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
 def _h(pts: np.ndarray) -> np.ndarray:
     """``(N, 2)`` -> homogeneous ``(N, 3)``."""
     return np.hstack([pts, np.ones((len(pts), 1))])

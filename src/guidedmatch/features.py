@@ -388,17 +388,22 @@ def read_image_strict(path: str | os.PathLike, flags: int | None = None) -> np.n
 
 
 def load_image(image_or_path, grey: bool = True) -> np.ndarray:
-    """Read an image as ``uint8``; grey ``(h, w)`` when ``grey`` else ``(h, w, 3)`` BGR.
+    """Read an image as ``uint8``; grey ``(h, w)`` when ``grey`` else ``(h, w, 3)`` BGR. The one image reader
+    of the package (CLI, :func:`detect`, the evaluation datasets).
 
-    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255). Files are decoded
-    completely or not at all (:func:`read_image_strict`): a truncated or corrupt file raises
+    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255, uint16 to the
+    high byte). A file is decoded by ``cv2.imread`` with ``IMREAD_GRAYSCALE`` when ``grey`` (the decoder's own
+    grey conversion, as hloc and the benchmarks use; for JPEG it decodes the luminance directly) else
+    ``IMREAD_COLOR``; an array is converted with ``cv2.cvtColor``. The two grey conversions may differ by one
+    grey level in some pixels (libpng / libjpeg round differently from ``cvtColor``).
+    Files are decoded completely or not at all (:func:`read_image_strict`): a truncated or corrupt file raises
     :class:`~guidedmatch.errors.ImageReadError` (a ``ValueError``); a missing path raises :class:`ImageNotFoundError`
-    (also a ``FileNotFoundError``); an empty array raises :class:`~guidedmatch.errors.ImageReadError`.
+    (also a ``FileNotFoundError``); an empty image raises :class:`~guidedmatch.errors.ImageReadError`.
     """
     import cv2
 
     if isinstance(image_or_path, (str, os.PathLike)):
-        img = read_image_strict(image_or_path)
+        img = read_image_strict(image_or_path, cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
     else:
         img = np.asarray(image_or_path)
     if img.size == 0 or img.ndim < 2 or min(img.shape[:2]) == 0:

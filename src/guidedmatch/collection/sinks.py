@@ -141,14 +141,16 @@ class MatchSink:
 
     kind = ""
 
-    def done_pairs(self) -> set[frozenset[str]]:
-        """Pairs already complete in the sink (resume: skip them)."""
+    def done_pairs(self, candidates=None) -> set[frozenset[str]]:
+        """Pairs already complete in the sink (resume: skip them). Pass the pair list as ``candidates`` for an
+        exact answer restricted to it (ColmapSink: see its note on pairs with zero matches)."""
         raise NotImplementedError
 
     def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None,
               geometry=None) -> None:
         """Store the matches of one pair atomically (``pairs (M, 2)`` indices into name1's / name2's features,
-        ``scores (M,)`` higher = better, ``geometry`` a :class:`~guidedmatch.geometry.TwoViewGeometry` or None)."""
+        ``scores (M,)`` per-match values (the engine's descriptor distances), ``geometry`` a
+        :class:`~guidedmatch.geometry.TwoViewGeometry` or None)."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -181,6 +183,8 @@ class ColmapSink(MatchSink):
     """
 
     kind = "colmap"
+    #: ``done_pairs()`` checks every image pair exactly up to this many pairs (50,000 ~ 0.6 s), else bulk reads.
+    EXACT_PAIRS = 50_000
 
     def __init__(self, database_path: str | os.PathLike, geometry: str = "ours", *, overwrite: bool = False) -> None:
         from ..validation import check_bool, check_choice
@@ -230,13 +234,17 @@ class ColmapSink(MatchSink):
     def done_pairs(self, candidates=None) -> set[frozenset[str]]:
         """Pairs already complete: with a two-view geometry row (``geometry="ours"``) or a matches row.
 
-        Without ``candidates`` the set comes from pycolmap's bulk readers, which skip rows with zero matches and
-        no geometry matrix: such a pair (an image without features) is matched again on resume and its rows are
-        replaced (same result). With ``candidates`` (pairs of names) each one is checked exactly.
+        With ``candidates`` (pairs of names) each one is checked exactly (~12 us per pair). Without, databases of
+        up to ``EXACT_PAIRS`` image pairs (~320 images) are checked pair by pair too; larger ones are read with
+        pycolmap's bulk readers, which skip rows with zero matches and no geometry matrix: such a pair (an image
+        without features) is matched again on resume and its rows are replaced (same result).
         """
         if self.overwrite:
             return set()
         db = self._db
+        if candidates is None and len(self._ids) * (len(self._ids) - 1) // 2 <= self.EXACT_PAIRS:
+            names = sorted(self._ids)
+            candidates = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
         if candidates is not None:
             out = set()
             for a, b in candidates:
@@ -328,7 +336,7 @@ class ColmapSink(MatchSink):
         import pycolmap
 
         if self.geometry != "colmap":
-            raise ConfigError(f"ColmapSink.verify needs geometry='colmap' (this sink writes geometry={self.geometry!r})")
+            raise ConfigError(f"ColmapSink.verify needs geometry='colmap' (this sink has geometry={self.geometry!r})")
         if isinstance(options, dict):
             opts = pycolmap.TwoViewGeometryOptions()
             opts.mergedict(options)
@@ -388,7 +396,7 @@ def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
 class H5MatchesSink(MatchSink):
     """Write matches as an hloc ``matches.h5``: group ``names_to_pair(name1, name2)`` with ``matches0 (N1,) int32``
     (index into name2's features, -1 = unmatched; int32 holds any keypoint count, hloc's own int16 stops at
-    32,767) and ``matching_scores0 (N1,) float32`` (0 where unmatched).
+    32,767) and ``matching_scores0 (N1,) float32`` (the scores given to :meth:`write`, 0 where unmatched).
 
     Crash safety: writes are buffered and flushed every ``flush_every`` pairs (and on close) as a complete new
     segment file in ``<matches>.parts/`` (temp file + rename); :meth:`close` merges the existing ``matches.h5``
@@ -483,17 +491,24 @@ class H5MatchesSink(MatchSink):
         a, b = (self._unsanitize.get(x, x) for x in parts)
         return frozenset((a, b))
 
-    def done_pairs(self) -> set[frozenset[str]]:
-        """Pairs in ``matches.h5``, in complete segments, or written in this session (either key order)."""
+    def done_pairs(self, candidates=None) -> set[frozenset[str]]:
+        """Pairs in ``matches.h5``, in complete segments, or written in this session (either key order);
+        restricted to ``candidates`` (pairs of names) when given."""
         keys = set(self._done) | set(self._buffer)
+        if candidates is not None:
+            return {frozenset((a, b)) for a, b in candidates
+                    if names_to_pair(a, b) in keys or names_to_pair(b, a) in keys}
         return {s for s in map(self._key_names, keys) if s is not None}
 
     def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None = None,
               geometry=None) -> None:
         """Buffer one pair under ``names_to_pair(name1, name2)`` (``matches0`` over name1's features).
 
-        ``scores`` are stored as ``matching_scores0`` (hloc: higher = better). ``geometry`` is not stored (hloc
-        verifies in COLMAP at import). A pair already stored (either order) is replaced at close.
+        ``scores`` are stored as given in ``matching_scores0`` (0 where unmatched). hloc's learned matchers store
+        confidences there (higher = better); the collection engine passes descriptor distances (lower = better).
+        hloc's own pipeline reads them only through ``import_matches(min_match_score=...)``, off by default -- do
+        not set it on our files. ``geometry`` is not stored (hloc verifies in COLMAP at import). A pair already
+        stored (either order) is replaced at close.
         """
         if self._closed:
             raise OutputError(f"H5MatchesSink({self.path}) is closed")

@@ -104,6 +104,12 @@ class FeatureSource:
         """The image's :class:`~guidedmatch.features.Features` (OpenCV pixel convention)."""
         raise NotImplementedError
 
+    def validate(self, names=None) -> None:
+        """Check that every image (or ``names``) has descriptors of one type and length; InputError if not.
+
+        Call it before matching: sources check what is cheap at construction; this may read more.
+        """
+
     def close(self) -> None:
         """Close the file handle of this process (reopened by the next :meth:`load`)."""
         h, self._handle = self._handle, None
@@ -129,8 +135,33 @@ class FeatureSource:
 
 
 # ====================================================================== COLMAP
-def _open_colmap(path: Path):
-    """``pycolmap.Database`` of an existing COLMAP database (DatabaseError when missing or not a database)."""
+def _writer_active(path: Path) -> bool:
+    """True while a guidedmatch sink holds the write lock ``<db>.lock`` (a shared flock probe fails)."""
+    import fcntl
+
+    lock = path.with_name(path.name + ".lock")
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
+
+
+def _open_colmap(path: Path, busy_timeout: float = 30.0):
+    """``pycolmap.Database`` of an existing COLMAP database (DatabaseError when missing or not a database).
+
+    Opening runs COLMAP's schema set-up, which fails while another connection is inside a write transaction
+    ("database is locked"). The open is retried: for up to ``busy_timeout`` s while a guidedmatch sink holds the
+    database's write lock (its transactions last milliseconds), else for 2 s.
+    """
     import pycolmap
 
     if not path.exists():
@@ -141,10 +172,18 @@ def _open_colmap(path: Path):
         head = fh.read(16)
     if head != _SQLITE_MAGIC:
         raise DatabaseError(f"{path} is not a COLMAP database (not an SQLite file)")
-    try:
-        return pycolmap.Database.open(str(path))
-    except Exception as exc:  # pycolmap raises RuntimeError / ValueError with SQLite's message
-        raise DatabaseError(f"cannot open COLMAP database {path}: {exc}") from None
+    start = time.monotonic()
+    delay = 0.02
+    while True:
+        try:
+            return pycolmap.Database.open(str(path))
+        except Exception as exc:  # pycolmap raises RuntimeError / ValueError with SQLite's message
+            waited = time.monotonic() - start
+            if waited > (busy_timeout if _writer_active(path) else 2.0):
+                raise DatabaseError(f"cannot open COLMAP database {path} (tried for {waited:.1f} s; another "
+                                    f"process may be writing it): {exc}") from None
+            time.sleep(delay)
+            delay = min(0.5, delay * 2)
 
 
 def _descriptor_kind(ftype, nbytes: int) -> str:
@@ -174,7 +213,7 @@ class ColmapSource(FeatureSource):
     def __init__(self, database_path: str | os.PathLike, *, busy_timeout: float = 30.0) -> None:
         super().__init__(database_path)
         self.busy_timeout = float(busy_timeout)
-        db = _open_colmap(self.path)
+        db = _open_colmap(self.path, self.busy_timeout)
         try:
             images = sorted(db.read_all_images(), key=lambda im: im.image_id)
             cameras = {c.camera_id: c for c in db.read_all_cameras()}
@@ -206,18 +245,19 @@ class ColmapSource(FeatureSource):
                                     f"({_examples(no_desc)}); run feature extraction first")
             if mismatch:
                 raise DatabaseError(f"{self.path}: keypoint and descriptor counts differ for {_examples(mismatch)}")
-            self._desc = self._read_descriptor_meta(db, self._names[0])
+            self._ref = next((n for n in self._names if self._counts[n] > 0), self._names[0])
+            self._desc = self._read_descriptor_meta(db, self._ref)
         finally:
             db.close()
 
     @property
     def descriptor_kind(self) -> str:
-        """Descriptor kind of the first image (``"sift"``, ``"orb"``, ...)."""
+        """Descriptor kind of the first image with features (``"sift"``, ``"orb"``, ...)."""
         return self._desc[0]
 
     @property
     def descriptor_bytes(self) -> int:
-        """Bytes per descriptor row of the first image."""
+        """Bytes per descriptor row of the first image with features."""
         return self._desc[1]
 
     def _read_descriptor_meta(self, db, name: str) -> tuple[str, int]:
@@ -228,7 +268,7 @@ class ColmapSource(FeatureSource):
 
     def _db(self):
         if self._handle is None:
-            self._handle = _open_colmap(self.path)
+            self._handle = _open_colmap(self.path, self.busy_timeout)
         return self._handle
 
     def _retry(self, fn):
@@ -265,7 +305,7 @@ class ColmapSource(FeatureSource):
         kind = _descriptor_kind(desc.type, nbytes)
         if len(data) and (kind, nbytes) != self._desc:
             raise InputError(f"{self.path}: mixed descriptor types: image {name!r} has {kind} ({nbytes} bytes), "
-                             f"image {self._names[0]!r} has {self._desc[0]} ({self._desc[1]} bytes); "
+                             f"image {self._ref!r} has {self._desc[0]} ({self._desc[1]} bytes); "
                              "one collection needs one descriptor type")
         if kind == "sift":
             descriptors = data.astype(np.float32)
@@ -301,7 +341,7 @@ class ColmapSource(FeatureSource):
             if self._counts[name] and meta != self._desc:
                 bad.append(f"{name} ({meta[0]}, {meta[1]} bytes)")
         if bad:
-            raise InputError(f"{self.path}: mixed descriptor types: {self._names[0]!r} has {self._desc[0]} "
+            raise InputError(f"{self.path}: mixed descriptor types: {self._ref!r} has {self._desc[0]} "
                              f"({self._desc[1]} bytes) but {_examples(bad)}; one collection needs one type")
 
 
@@ -497,7 +537,8 @@ def _colmap_descriptors(f: Features):
 def images_to_database(image_dir: str | os.PathLike, database_path: str | os.PathLike, *, detector: str = "sift",
                        max_features: int | None = None, max_image_size: int | None = None,
                        camera_model: str = "SIMPLE_RADIAL", single_camera: bool = False, progress: bool = True,
-                       detector_options: dict | None = None, resume: bool = False) -> ColmapSource:
+                       detector_options: dict | None = None, resume: bool = False,
+                       image_names=None) -> ColmapSource:
     """Detect the images of a folder with our detectors and store them in a new COLMAP database.
 
     Images (``IMAGE_EXTENSIONS``, searched recursively, names relative to ``image_dir`` with ``/``) are
@@ -511,6 +552,7 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
 
     Each image is written in one transaction, so an interrupted run leaves a valid database holding the images
     done so far; ``resume=True`` accepts an existing database and detects only the images it lacks.
+    ``image_names`` (paths relative to ``image_dir``) restricts the run to those images, in that order.
 
     Raises:
         OutputError: ``database_path`` exists (without ``resume``) or cannot be written.
@@ -536,7 +578,15 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
     image_dir, database_path = Path(image_dir), Path(database_path)
     if not image_dir.is_dir():
         raise InputError(f"image folder not found: {image_dir}")
-    names = _list_images(image_dir)
+    if image_names is None:
+        names = _list_images(image_dir)
+    else:
+        names = [Path(str(n)).as_posix() for n in image_names]
+        missing = [n for n in names if not (image_dir / n).is_file()]
+        if missing:
+            raise InputError(f"{len(missing)} of the image_names are not files in {image_dir}: {_examples(missing)}")
+        if len(set(names)) != len(names):
+            raise InputError("image_names has repeated names")
     if not names:
         raise InputError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in {image_dir}")
     if database_path.exists() and not resume:

@@ -166,8 +166,9 @@ def make_multiview(n_views: int = 6, size: tuple[int, int] = (640, 480), seed: i
     planes = [plane([0, 0, 9.0], ex, ey, wall_half, 6.0)]
     for k, x in enumerate(np.arange(-x_end, x_end + 1e-9, 4.0)):
         a = np.deg2rad(rng.uniform(25, 40) * (-1) ** k)
-        planes.append(plane([x + rng.uniform(-0.5, 0.5), rng.uniform(-0.6, 0.6), rng.uniform(5.0, 6.5)],
+        planes.append(plane([x + rng.uniform(-0.5, 0.5), rng.uniform(-0.6, 0.3), rng.uniform(5.0, 6.5)],
                             _rot(ey, a) @ ex, _rot(ex, rng.uniform(-0.3, 0.3)) @ ey, 1.3, 1.2))
+    planes.append(plane([0, 1.8, 5.5], ex, np.array([0, 0, 1.0]), wall_half, 3.5))  # floor, 1.8 m below
     centers, targets, rolls = [], [], []
     for x in np.linspace(-x_end, x_end, n_views):
         c = np.array([x, rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3)])
