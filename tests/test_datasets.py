@@ -381,7 +381,7 @@ def _legacy_symmetric_epipolar(F, p1, p2):
 
 
 @pytest.mark.data
-@needs_data
+@needs_data(*OXFORD_FILES, *STRECHA_FILES)
 def test_gt_decisions_unchanged_by_the_shared_geometry_functions():
     """HomographyGT / EpipolarGT now use alignment.apply_homography and epipolar.symmetric_epipolar_distance
     (element-wise products, normalised lines) instead of their own copies. On the real GT (12 Oxford pairs,

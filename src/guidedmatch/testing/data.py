@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..datasets import OXFORD_ALL_SEQUENCES, data_root
 
-__all__ = ["missing_data", "needs_data", "OXFORD_FILES", "STRECHA_FILES", "PHOTO_FILES"]
+__all__ = ["missing_data", "needs_data", "OXFORD_FILES", "STRECHA_FILES", "PHOTO_FILES", "DATA_FOLDERS"]
 
 #: the Oxford images and plain-text homographies of every sequence (``oxford_pairs`` with any targets)
 OXFORD_FILES = tuple(f"oxford/{s}/img{k}.png" for s in OXFORD_ALL_SEQUENCES for k in range(1, 7)) + tuple(
@@ -46,10 +46,20 @@ def missing_data(*patterns: str, root: str | os.PathLike | None = None) -> list[
     return out
 
 
-def needs_data(*patterns: str, root: str | os.PathLike | None = None):
-    """``pytest.mark.skipif`` that skips unless every file of ``patterns`` exists under the data root."""
+#: what a bare ``@needs_data`` (no files named) requires: the three data folders, each non-empty
+DATA_FOLDERS = ("oxford/*", "pose_pairs/*", "photos/*")
+
+
+def needs_data(*patterns, root: str | os.PathLike | None = None):
+    """``pytest.mark.skipif`` that skips unless every file of ``patterns`` exists under the data root.
+
+    Used bare (``@needs_data`` on a test function) it requires :data:`DATA_FOLDERS`; name the files a test reads
+    to make it skip whenever one of them is missing.
+    """
     import pytest
 
+    if len(patterns) == 1 and callable(patterns[0]):
+        return needs_data(*DATA_FOLDERS, root=root)(patterns[0])
     miss = missing_data(*patterns, root=root)
     shown = ", ".join(miss[:3]) + (f" (+{len(miss) - 3} more)" if len(miss) > 3 else "")
     return pytest.mark.skipif(bool(miss), reason=f"evaluation data missing: {shown} (set GUIDEDMATCH_DATA)")
