@@ -2,14 +2,12 @@ import json
 
 import pytest
 
-from guidedmatch.datasets import data_root
-
-needs_data = pytest.mark.skipif(data_root() is None, reason="evaluation data not found (set GUIDEDMATCH_DATA)")
+from guidedmatch.testing.data import OXFORD_FILES, PHOTO_FILES, STRECHA_FILES, needs_data
 
 
 @pytest.mark.data
 @pytest.mark.slow
-@needs_data
+@needs_data(*OXFORD_FILES, *STRECHA_FILES, *PHOTO_FILES)
 def test_bench_quick_writes_report_json_and_figures(tmp_path):
     from guidedmatch.cli import main
 

@@ -63,6 +63,7 @@ from .bruteforce import DenseKnn2, check_descriptors, knn2, match_bruteforce
 from .config import MODES, MatcherConfig, Mode
 from .epipolar import map_points
 from .features import as_features
+from .jit import compile_monitor, exclude_compile_time
 from .results import (CandidateStats, Fallback, MatchResult, MatchStats, ModelUpdate, PhaseTimes, default_flags,
                       empty_pairs)
 from .validation import config_from
@@ -107,12 +108,11 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     config = config_from(MatcherConfig, config)
     f1, f2 = as_features(features1, "features1"), as_features(features2, "features2")
     d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors)
-    if not mode.guided:
-        res = _match_bf(config, f1, f2, d1, d2, binary)
-        return (res, None) if return_models else res
-    run = _GuidedRun(config, mode, f1, f2, d1, d2, binary)
-    res = run.run()
-    return (res, run.guidance) if return_models else res
+    with compile_monitor() as jit:  # a first call compiles Numba kernels: reported apart from time_s
+        run = None if not mode.guided else _GuidedRun(config, mode, f1, f2, d1, d2, binary)
+        res = _match_bf(config, f1, f2, d1, d2, binary) if run is None else run.run()
+    res = exclude_compile_time(res, jit.seconds)
+    return (res, run.guidance if run is not None else None) if return_models else res
 
 
 def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary) -> MatchResult:
