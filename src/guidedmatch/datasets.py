@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from .errors import DataNotFoundError
 from .alignment import apply_homography
 from .epipolar import skew, symmetric_epipolar_distance
 from .features import load_image
@@ -79,7 +80,7 @@ def data_root(override: str | os.PathLike | None = None) -> Path | None:
 def _require_root(root: str | os.PathLike | None) -> Path:
     r = data_root(root)
     if r is None:
-        raise FileNotFoundError(
+        raise DataNotFoundError(
             "evaluation data folder not found (looked for ../shared/data relative to the current directory "
             f"and to the repository root); set the environment variable {ENV_VAR} to the data folder "
             "or pass root=..."
@@ -87,8 +88,8 @@ def _require_root(root: str | os.PathLike | None) -> Path:
     return r
 
 
-def _missing(path: Path, what: str) -> FileNotFoundError:
-    return FileNotFoundError(
+def _missing(path: Path, what: str) -> DataNotFoundError:
+    return DataNotFoundError(
         f"{what} not found: {path} -- is the data root right? Set {ENV_VAR} to the folder holding "
         "oxford/, pose_pairs/ and photos/ (see ../shared/data/SOURCES.md), or pass root=..."
     )
