@@ -326,13 +326,13 @@ def cmd_experiment(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    writable_folder(args.out)
     if args.which == "sfm":
         from .evaluation import bench_sfm
 
         return int(bench_sfm.main(args) or 0)
     from .evaluation.bench import run_benchmarks
 
-    writable_folder(args.out)
     run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
                    detector=args.detector, seed=args.seed)
     return 0
