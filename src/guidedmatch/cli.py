@@ -346,7 +346,8 @@ def cmd_sfm(args) -> int:
                      single_camera=args.single_camera, pairs=args.pairs, mode=args.mode,
                      matcher=_parse_kv(args.config, "--config") or None, geometry=args.geometry, workers=args.workers,
                      scheduler=args.scheduler, num_threads=args.threads, seed=args.seed, progress=not args.quiet)
-    report = run_sfm(args.image_dir, args.out_dir, conf, command="guidedmatch " + " ".join(sys.argv[1:]))
+    report = run_sfm(args.image_dir, args.out_dir, conf, command="guidedmatch " + " ".join(sys.argv[1:]),
+                     colmap_log=args.colmap_log)
     if report["registered"] < 2:
         print(f"guidedmatch: no reconstruction: the mapper registered {report['registered']} of {report['num_images']} "
               f"images (too few verified pairs; see {Path(args.out_dir) / 'report.md'})", file=sys.stderr)
@@ -484,6 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--threads", type=int, default=-1, help="COLMAP extraction/mapping threads (default -1 = all)")
     s.add_argument("--seed", type=int, default=0, help="mapper random seed (default 0)")
     s.add_argument("--quiet", action="store_true", help="no progress output")
+    s.add_argument("--colmap-log", action="store_true", help="show COLMAP's INFO log lines (extraction, mapping)")
     s.set_defaults(func=cmd_sfm)
     return p
 

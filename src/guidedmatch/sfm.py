@@ -24,6 +24,7 @@ pixel convention (the feature sources convert to OpenCV's).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -44,7 +45,7 @@ from .validation import check_bool, check_choice, check_number, config_from
 __all__ = ["SfmConfig", "SfmPaths", "IMAGE_EXTENSIONS", "list_images", "check_images", "parse_camera",
            "extract_main", "match_main", "map_main", "main", "run_sfm", "database_pair_stats",
            "verified_inliers", "run_mapping", "reconstruction_stats", "plot_reconstruction",
-           "extract_colmap_sift"]
+           "extract_colmap_sift", "colmap_log_level"]
 
 #: File suffixes taken as images (case-insensitive), as COLMAP's image reader accepts them.
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp")
@@ -689,6 +690,23 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
 
 
 def run_sfm(image_dir: str | os.PathLike, out_dir: str | os.PathLike, config: SfmConfig | dict | None = None,
-            command: str = "") -> dict:
-    """``guidedmatch sfm IMAGE_DIR OUT_DIR`` as a function: :func:`main` with :class:`SfmPaths`."""
-    return main(config_from(SfmConfig, config), SfmPaths(image_dir, out_dir), command=command)
+            command: str = "", colmap_log: bool = False) -> dict:
+    """``guidedmatch sfm IMAGE_DIR OUT_DIR`` as a function: :func:`main` with :class:`SfmPaths`.
+
+    COLMAP's own INFO log lines (thousands for a mapping run) are silenced unless ``colmap_log``; its warnings and
+    errors still show."""
+    with colmap_log_level(0 if colmap_log else 1):
+        return main(config_from(SfmConfig, config), SfmPaths(image_dir, out_dir), command=command)
+
+
+@contextlib.contextmanager
+def colmap_log_level(level: int = 1):
+    """COLMAP's (glog) minimum log level inside the block: 0 INFO, 1 WARNING, 2 ERROR; restored afterwards."""
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = level
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old

@@ -283,7 +283,15 @@ def _merge_rows(new: list[dict], old: list[dict]) -> list[dict]:
     return sorted(rows, key=lambda r: order.get((r["setting"], r["method"]), len(order)))
 
 
-def run(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads: int = 2, seed: int = 0,
+def run(*args, colmap_log: bool = False, **kwargs) -> dict:
+    """:func:`run_benchmark` with COLMAP's INFO log lines silenced unless ``colmap_log``."""
+    from ..sfm import colmap_log_level
+
+    with colmap_log_level(0 if colmap_log else 1):
+        return run_benchmark(*args, **kwargs)
+
+
+def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads: int = 2, seed: int = 0,
         matcher: dict | None = None, workers: int | None = None, command: str = "", e2e: bool = True,
         work: Path | None = None, merge: bool = False) -> dict:
     """Run the benchmark; writes ``out/sfm.json``, ``out/sfm.md``, ``out/sfm_time_vs_inliers.png``. Databases and
