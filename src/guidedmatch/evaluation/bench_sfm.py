@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .poses import evaluate_poses, poses_from_reconstruction, read_strecha_cameras
 
 #: Feature settings: name -> (max_num_features, peak_threshold or None for COLMAP's default).
@@ -111,6 +113,21 @@ def match_ours(db: Path, mode: str, geometry: str, threads: int, matcher: dict |
     return {"match_verify_s": t_match + (t_verify if geometry == "colmap" else 0.0), "match_s": t_match,
             "verify_s": t_verify if geometry == "colmap" else None, "failed_pairs": len(report.failed),
             "collection_totals": report.totals}
+
+
+def warm_up(db: Path, modes=OUR_MODES) -> None:
+    """Compile / load the Numba kernels for this database's descriptor type once (in this process, which writes the
+    on-disk cache the engine's worker processes then load), on 3000 features of two of its images, so that no timed
+    method pays for compilation."""
+    from ..collection.sources import ColmapSource
+    from ..matcher import match
+
+    with ColmapSource(db) as src:
+        a, b = src.names()[:2]
+        f1, f2 = src.load(a), src.load(b)
+    f1, f2 = f1.subset(np.arange(min(3000, len(f1)))), f2.subset(np.arange(min(3000, len(f2))))
+    for mode in modes:
+        match(f1, f2, mode=mode)
 
 
 def evaluate_database(db: Path, image_dir: Path, gt: dict, work: Path, threads: int, seed: int) -> dict:
@@ -324,6 +341,8 @@ def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None
         ext = extract_database(image_dir, base, setting, threads)
         results.setdefault("extraction", {})[setting] = ext
         todo = list(methods) if explicit else default_methods(setting)
+        if any(m not in COLMAP_METHODS for m in todo):
+            warm_up(base, modes=sorted({m.rsplit("+", 1)[0] for m in todo if m not in COLMAP_METHODS}))
         for method in todo:
             _say(f"[{setting}] {method}")
             try:
