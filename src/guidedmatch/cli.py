@@ -97,16 +97,22 @@ def matcher_config(items: list[str] | None) -> MatcherConfig:
 
 
 def writable_folder(folder) -> Path:
-    """``folder`` exists (created if needed) and is writable, else OutputError -- checked before any work."""
+    """``folder`` is (or can be created as) a writable folder, else OutputError -- checked before any work, without
+    creating anything (the run creates it when it writes)."""
     import os
 
     folder = Path(folder)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise OutputError(f"output folder {folder} is not a writable folder")
+    probe = folder
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe == folder and not folder.is_dir():
+        raise OutputError(f"output folder {folder} exists and is not a folder")
+    if not probe.is_dir():
+        raise OutputError(f"cannot create output folder {folder}: {probe} is not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise OutputError(f"output folder {folder} is not writable ({probe} is not writable)")
     return folder
 
 
