@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, ImageReadError, InputError
+from .errors import ConfigError, ImageReadError, InputError, OutputError
 
 DETECTORS = ("sift", "orb", "akaze", "brisk")
 BINARY_KINDS = ("orb", "akaze", "brisk")
@@ -181,6 +181,19 @@ def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)
     os.replace(tmp, path)
+
+
+def writable_folder(folder: str | os.PathLike) -> Path:
+    """``folder`` exists (created if needed) and is writable; :class:`~guidedmatch.errors.OutputError` otherwise.
+    Call it before any work that ends in writing there."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"output folder {folder} is not a writable folder")
+    return folder
 
 
 def atomic_savez(path: str | os.PathLike, **arrays: Any) -> None:
