@@ -19,6 +19,7 @@ import numpy as np
 from . import __version__
 from .config import MODES, MatcherConfig
 from .errors import ConfigError, GuidedMatchError, InputError, OutputError
+from .features import writable_folder
 
 OUTPUT_FORMATS = (".npz", ".csv", ".json")
 
@@ -94,26 +95,6 @@ def matcher_config(items: list[str] | None) -> MatcherConfig:
         return config_from(MatcherConfig, _parse_kv(items, "--config"))
     except ConfigError as exc:
         raise ConfigError(f"bad --config: {exc}") from None
-
-
-def writable_folder(folder) -> Path:
-    """``folder`` is (or can be created as) a writable folder, else OutputError -- checked before any work, without
-    creating anything (the run creates it when it writes)."""
-    import os
-
-    folder = Path(folder)
-    probe = folder
-    while not probe.exists():
-        if probe.parent == probe:
-            break
-        probe = probe.parent
-    if probe == folder and not folder.is_dir():
-        raise OutputError(f"output folder {folder} exists and is not a folder")
-    if not probe.is_dir():
-        raise OutputError(f"cannot create output folder {folder}: {probe} is not a folder")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise OutputError(f"output folder {folder} is not writable ({probe} is not writable)")
-    return folder
 
 
 def _detect_both(img1, img2, detector, max_features, options, max_image_size=None, names=("IMG1", "IMG2")):
@@ -334,7 +315,6 @@ def cmd_experiment(args) -> int:
 def cmd_bench(args) -> int:
     from .evaluation.bench import run_benchmarks
 
-    writable_folder(args.out)
     run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
                    detector=args.detector, seed=args.seed)
     return 0
