@@ -87,7 +87,7 @@ def test_colmap_baseline_on_rendered_scene(tmp_path):
     scored = [p["error_deg"] for p in ev["per_pair"] if p["error_deg"] is not None and math.isfinite(p["error_deg"])]
     assert len(scored) == row["registered"] * (row["registered"] - 1) // 2
     saved = json.loads((out / "sfm.json").read_text())
-    assert saved["rows"][0]["verified_inliers"] == row["verified_inliers"] and saved["meta"]["git_commit"]
+    assert saved["rows"][0]["verified_inliers"] == row["verified_inliers"] and "cpu_model" in saved["meta"]
     assert (out / "sfm.md").read_text().count("| colmap |") == 1 and (out / "sfm_time_vs_inliers.png").is_file()
     res2 = bench_sfm.run(tmp_path / "scene", out, settings=("8192",), methods=["colmap_guided"], threads=2, e2e=False,
                          merge=True)
