@@ -100,6 +100,8 @@ def writable_folder(folder) -> Path:
     """``folder`` exists (created if needed) and is writable, else OutputError -- checked before any work."""
     import os
 
+    from .features import check_output_path
+
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -107,6 +109,7 @@ def writable_folder(folder) -> Path:
         raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
     if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
         raise OutputError(f"output folder {folder} is not a writable folder")
+    check_output_path(folder / "results", "in output folder")  # a probe file: os.access says yes to root everywhere
     return folder
 
 
