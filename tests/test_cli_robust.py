@@ -311,6 +311,7 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
 
     monkeypatch.setattr(subprocess, "Popen", fake_popen)
     monkeypatch.setattr(jit, "cache_is_cold", lambda detector: True)
+    monkeypatch.setattr(jit, "_idle_cores", lambda: 2.0)
     ok = True
     with jit.background_compile("sift", stream=sys.stdout) as bg:
         assert bg and len(bg.procs) == 2
@@ -320,6 +321,10 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
         with jit.background_compile("sift", stream=sys.stdout):
             raise RuntimeError("detection failed")
     assert len(started) == 2 and all(p.returncode is not None for p in started)  # killed, not left running
+    monkeypatch.setattr(jit, "_idle_cores", lambda: 0.3)  # saturated machine: compile in the foreground
+    with jit.background_compile("sift") as bg:
+        assert not bg
+    monkeypatch.setattr(jit, "_idle_cores", lambda: 2.0)
     monkeypatch.setenv(jit.BACKGROUND_ENV, "0")
     with jit.background_compile("sift") as bg:
         assert not bg

@@ -180,6 +180,21 @@ def _precompile(detector: str, part: str) -> None:
         match(detect(scene.image1, detector, 1500), detect(scene.image2, detector, 1500), "so+epi+ia")
 
 
+def _idle_cores() -> float:
+    """Usable cores minus the 1-minute load average (helpers only pay off when a core is idle; on a saturated
+    machine they add ~3 CPU-seconds of imports for nothing)."""
+    import os
+
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    try:
+        return n - os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return float(n)
+
+
 class BackgroundCompile:
     """Two helper processes compiling the kernels of a first run while the caller reads and detects
     (:func:`background_compile`). ``wait()`` returns the seconds spent waiting for them."""
@@ -215,7 +230,8 @@ class BackgroundCompile:
 def background_compile(detector: str, *, stream=None):
     """On a first run (:func:`cache_is_cold`), compile the kernels for ``detector`` features in two helper
     processes -- one per core -- while the block runs (image reading, detection); yields a
-    :class:`BackgroundCompile` (falsy when nothing was started: warm cache, or ``GUIDEDMATCH_BACKGROUND_COMPILE=0``).
+    :class:`BackgroundCompile` (falsy when nothing was started: warm cache, no idle core (load average), or
+    ``GUIDEDMATCH_BACKGROUND_COMPILE=0``).
     Call ``wait()`` before matching; on leaving the block the helpers are waited for (or killed on an error), never
     left running. The caller's warm-up then loads the kernels from the cache, and compiles whatever is missing.
     """
@@ -224,7 +240,7 @@ def background_compile(detector: str, *, stream=None):
 
     global _note_printed
     procs = []
-    if os.environ.get(BACKGROUND_ENV, "1") != "0" and cache_is_cold(detector):
+    if os.environ.get(BACKGROUND_ENV, "1") != "0" and _idle_cores() >= 1 and cache_is_cold(detector):
         with _note_lock:
             if not _note_printed:
                 _note_printed = True
