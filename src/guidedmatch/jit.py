@@ -208,6 +208,8 @@ class BackgroundCompile:
     def wait(self, timeout: float = 600.0) -> float:
         import subprocess
 
+        if not self.procs:
+            return 0.0
         t0 = time.perf_counter()
         for p in self.procs:
             try:
