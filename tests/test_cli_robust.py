@@ -304,7 +304,7 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
     real_popen = subprocess.Popen
 
     def fake_popen(cmd, **kw):  # the helpers' command line, run as a harmless sleeper
-        assert cmd[1:4] == ["-m", "guidedmatch.jit", "sift"] and cmd[4] in ("parallel", "serial")
+        assert cmd[1:4] == ["-m", "guidedmatch.jit", "sift"] and cmd[4] in ("parallel", "serial") and cmd[5] == "-"
         p = real_popen([sys.executable, "-c", "import time; time.sleep(%s)" % (0.2 if ok else 60)], **kw)
         started.append(p)
         return p
@@ -321,6 +321,8 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
         with jit.background_compile("sift", stream=sys.stdout):
             raise RuntimeError("detection failed")
     assert len(started) == 2 and all(p.returncode is not None for p in started)  # killed, not left running
+    with jit.background_compile("sift", ("bf",)) as bg:
+        assert not bg  # brute force alone: its one small kernel compiles in the foreground
     monkeypatch.setattr(jit, "_idle_cores", lambda: 0.3)  # saturated machine: compile in the foreground
     with jit.background_compile("sift") as bg:
         assert not bg

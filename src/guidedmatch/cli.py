@@ -213,7 +213,7 @@ def cmd_match(args) -> int:
 
     from .jit import background_compile
 
-    with background_compile(args.detector) as bg:  # first run: kernels compile on both cores while we detect
+    with background_compile(args.detector, (args.mode,)) as bg:  # first run: kernels compile on both cores meanwhile
         img1 = load_image(args.img1)
         img2 = load_image(args.img2)
         t0 = time.perf_counter()
@@ -276,7 +276,7 @@ def cmd_demo(args) -> int:
     w, h = args.size
     from .jit import background_compile
 
-    with background_compile(args.detector) as bg:  # first run: kernels compile on both cores meanwhile
+    with background_compile(args.detector, MODES) as bg:  # first run: kernels compile on both cores meanwhile
         print(f"[1/4] rendering a synthetic two-view scene {w}x{h}, camera roll {args.roll:g} deg (seed {args.seed})")
         scene = make_scene((w, h), roll_deg=args.roll, seed=args.seed)
         print(f"[2/4] detecting {args.detector.upper()} features")

@@ -148,11 +148,12 @@ def cache_is_cold(detector: str) -> bool:
         return False
 
 
-def _precompile(detector: str, part: str) -> None:
+def _precompile(detector: str, part: str, with_bf: bool = False) -> None:
     """Compile one half of the kernels a run of ``detector`` features needs (in a helper process; they land in the
-    on-disk cache). ``part="parallel"``: the multi-threaded guided kernel and brute-force top-2 (direct calls on
-    small arrays of the exact argument types); ``"serial"``: everything a ``so+epi+ia`` run of <= 1500 features
-    reaches (single-threaded guided kernel, spatial-order and alignment kernels) on a small rendered scene."""
+    on-disk cache). ``part="parallel"``: the multi-threaded guided kernel, and with ``with_bf`` the brute-force
+    top-2 of mode ``bf`` (direct calls on small arrays of the exact argument types); ``"serial"``: everything a
+    ``so+epi+ia`` run of <= 1500 features reaches (single-threaded guided kernel, spatial-order and alignment
+    kernels) on a small rendered scene."""
     rng = np.random.default_rng(0)
     if part == "parallel":
         from . import kernels
@@ -166,6 +167,8 @@ def _precompile(detector: str, part: str) -> None:
         cols, rows = kernels.build_strips(pts, 16.0, 0), kernels.build_strips(pts, 16.0, 1)
         lines = np.tile([0.0, 1.0, -50.0], (n, 1))
         kernels.guided_top2(np.arange(n), d, d, lines, True, 5.0, np.full(n, -np.inf), np.full(n, np.inf), cols, rows)
+        if not with_bf:
+            return
         if detector == "sift":
             kernels.top2_gemm(np.zeros((256, 64), np.float32), np.zeros(64, np.float32), np.zeros(256, np.float32),
                               False)
@@ -229,9 +232,9 @@ class BackgroundCompile:
 
 
 @contextmanager
-def background_compile(detector: str, *, stream=None):
-    """On a first run (:func:`cache_is_cold`), compile the kernels for ``detector`` features in two helper
-    processes -- one per core -- while the block runs (image reading, detection); yields a
+def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
+    """On a first run (:func:`cache_is_cold`) of guided ``modes``, compile the kernels they need for ``detector``
+    features in two helper processes -- one per core -- while the block runs (image reading, detection); yields a
     :class:`BackgroundCompile` (falsy when nothing was started: warm cache, no idle core (load average), or
     ``GUIDEDMATCH_BACKGROUND_COMPILE=0``).
     Call ``wait()`` before matching; on leaving the block the helpers are waited for (or killed on an error), never
@@ -242,14 +245,17 @@ def background_compile(detector: str, *, stream=None):
 
     global _note_printed
     procs = []
-    if os.environ.get(BACKGROUND_ENV, "1") != "0" and _idle_cores() >= 1 and cache_is_cold(detector):
+    modes = [str(m) for m in modes]
+    guided = any(m != "bf" for m in modes)  # bf alone needs one small kernel: compiled in the foreground
+    if guided and os.environ.get(BACKGROUND_ENV, "1") != "0" and _idle_cores() >= 1 and cache_is_cold(detector):
         with _note_lock:
             if not _note_printed:
                 _note_printed = True
                 print(NOTE, file=stream or sys.stderr, flush=True)
         for part in ("parallel", "serial"):
             try:
-                procs.append(subprocess.Popen([sys.executable, "-m", "guidedmatch.jit", detector, part],
+                procs.append(subprocess.Popen([sys.executable, "-m", "guidedmatch.jit", detector, part,
+                                               "bf" if "bf" in modes else "-"],
                                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             except OSError:
                 break
@@ -263,4 +269,4 @@ def background_compile(detector: str, *, stream=None):
 
 
 if __name__ == "__main__":  # helper process of background_compile: python -m guidedmatch.jit DETECTOR PART
-    _precompile(sys.argv[1], sys.argv[2])
+    _precompile(sys.argv[1], sys.argv[2], sys.argv[3] == "bf")
