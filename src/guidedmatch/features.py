@@ -366,7 +366,7 @@ def read_image_strict(path: str | os.PathLike, flags: int | None = None) -> np.n
     if len(data) == 0:
         raise ImageReadError(f"image file is empty: {path}")
     problem = None
-    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-64:]:
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND\xaeB`\x82" not in data[-4096:]:  # IEND + its fixed CRC
         problem = "PNG without its IEND chunk"
     elif data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[2:]:
         problem = "JPEG without an end-of-image marker"
