@@ -52,3 +52,11 @@ def test_summary_table_sums_like_the_paper():
     t = summary_table(rows, ["bf", "so+epi+ia"])
     assert "| BF | 400 | 100.00% | 40 | 30 | 75.00% | 4.00 | 1.00 |" in t
     assert "| SO+EPI+IA | 30 | 7.50% | 30 | 26 | 86.67% | 1.00 | 0.25 |" in t
+
+
+def test_bench_unwritable_out_is_a_clean_error(tmp_path, capsys):
+    from guidedmatch.cli import main
+
+    (tmp_path / "file").write_text("x")
+    assert main(["bench", "alignment", "--out", str(tmp_path / "file" / "o")]) == 2
+    assert capsys.readouterr().err.startswith("guidedmatch: error: cannot create output folder")

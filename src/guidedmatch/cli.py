@@ -19,6 +19,7 @@ import numpy as np
 from . import __version__
 from .config import MODES, MatcherConfig
 from .errors import ConfigError, GuidedMatchError, InputError, OutputError
+from .features import writable_folder
 
 OUTPUT_FORMATS = (".npz", ".csv", ".json")
 
@@ -94,23 +95,6 @@ def matcher_config(items: list[str] | None) -> MatcherConfig:
         return config_from(MatcherConfig, _parse_kv(items, "--config"))
     except ConfigError as exc:
         raise ConfigError(f"bad --config: {exc}") from None
-
-
-def writable_folder(folder) -> Path:
-    """``folder`` exists (created if needed) and is writable, else OutputError -- checked before any work."""
-    import os
-
-    from .features import check_output_path
-
-    folder = Path(folder)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise OutputError(f"output folder {folder} is not a writable folder")
-    check_output_path(folder / "results", "in output folder")  # a probe file: os.access says yes to root everywhere
-    return folder
 
 
 def _detect_both(img1, img2, detector, max_features, options, max_image_size=None, names=("IMG1", "IMG2")):
@@ -340,7 +324,6 @@ def cmd_experiment(args) -> int:
 def cmd_bench(args) -> int:
     from .evaluation.bench import run_benchmarks
 
-    writable_folder(args.out)
     run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
                    detector=args.detector, seed=args.seed)
     return 0

@@ -247,6 +247,17 @@ def _check_output_path(path: Path, what: str) -> Path:
     return path
 
 
+def writable_folder(folder: str | os.PathLike, what: str = "--out") -> Path:
+    """Check before any work that ``folder`` is, or can be created as, a folder that accepts new files
+    (:func:`check_output_path` of a file inside it); nothing is created. :class:`~guidedmatch.errors.OutputError`
+    naming ``folder`` otherwise."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"cannot write {what} {folder}: it exists and is not a folder")
+    check_output_path(folder / "probe", what)
+    return folder
+
+
 @contextlib.contextmanager
 def _output_errors(path: Path):
     """OSError while writing ``path`` (through a temp file) -> OutputError naming ``path``, not the temp file."""
