@@ -18,6 +18,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -325,28 +326,34 @@ _CORRUPT_MESSAGE = re.compile(r"premature end|corrupt|truncat|read error|crc err
 _BENIGN_MESSAGE = re.compile(r"iCCP|sRGB|known incorrect|unknown field|TIFFReadDirectory: Warning", re.IGNORECASE)
 
 
+_STDERR_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _capture_native_stderr():
     """Collect what native code (libjpeg, libpng: ``fprintf(stderr, ...)``) writes to file descriptor 2 meanwhile.
 
     Yields a list that receives the captured text on exit. Falls back to no capture when fd 2 is unavailable.
+    Serialized by a lock: fd 2 is process-wide, and two threads redirecting it at once could leave it pointing at
+    a temp file.
     """
     out: list[str] = []
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError, AttributeError):
-        yield out
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
+    with _STDERR_LOCK:
         try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):
             yield out
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            out.append(tmp.read().decode("utf-8", "replace"))
+            return
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                out.append(tmp.read().decode("utf-8", "replace"))
 
 
 def read_image_strict(path: str | os.PathLike, flags: int | None = None) -> np.ndarray:
