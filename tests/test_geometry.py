@@ -131,3 +131,20 @@ def test_rendered_pure_rotation_is_H(rendered):
     f1, f2, _ = rendered["rot"]
     g, _ = _bf_geometry(f1, f2)
     assert g.verdict == "verified" and g.model == "H"
+
+
+def test_report_geometry_keeps_the_decision():
+    from guidedmatch.geometry import report_geometry
+
+    s = general_pair(3, n_points=200, noise=0.3)
+    d = two_view_geometry(s.x1n, s.x2n, SIZE, SIZE)
+    assert d.model == "F"
+    y1, y2 = s.x1n[:50].copy(), s.x2n[:50].copy()
+    y2[25:] += 40.0  # far off their epipolar lines (generically)
+    r = report_geometry(d, y1, y2, F=s.F)
+    assert r.verdict == "verified" and r.model == "F" and r.num_matches == 50 and np.array_equal(r.F, s.F)
+    assert r.inliers[:25].all() and r.inliers[25:].mean() < 0.2 and r.evidence["num_reported"] == 50
+    rng = np.random.default_rng(0)
+    null = two_view_geometry(rng.uniform(0, 1, (100, 2)) * SIZE, rng.uniform(0, 1, (100, 2)) * SIZE, SIZE, SIZE)
+    r = report_geometry(null, y1, y2)
+    assert r.verdict == "no-overlap" and not r.inliers.any() and r.num_matches == 50

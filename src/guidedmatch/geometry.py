@@ -48,7 +48,7 @@ import numpy as np
 
 from .epipolar import estimate_fundamental, sampson_distance
 
-__all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "random_inlier_bound",
+__all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "report_geometry", "random_inlier_bound",
            "COLMAP_CONFIG"]
 
 #: verdict -> meaning.
@@ -134,6 +134,42 @@ class TwoViewGeometry:
         inliers = np.asarray(inliers, bool).reshape(-1)
         return TwoViewGeometry(self.verdict, self.model, self.F, self.H, inliers, int(inliers.sum()), len(inliers),
                                reason or self.reason, dict(self.evidence))
+
+
+def report_geometry(decision: TwoViewGeometry, x1, x2, *, F: np.ndarray | None = None,
+                    config: VerdictConfig | None = None) -> TwoViewGeometry:
+    """The verdict ``decision`` (taken on evidence the model did not select) reported over other correspondences
+    ``x1 (M,2)`` <-> ``x2 (M,2)`` -- e.g. a guided matcher's final matches, all chosen inside the band of its own F.
+
+    The verdict and the model type are ``decision``'s. For a verified ``"F"`` the inliers are the correspondences
+    within ``threshold_px`` (Sampson) of ``F`` (the matcher's final refit on all its matches) or of
+    ``decision.F``; for a verified ``"H"`` the homography is refit robustly on ``x1, x2`` (kept when it has at least
+    as many inliers as ``decision.H``) and the inliers are those within ``threshold_px`` transfer error. Not
+    verified: no inliers. ``evidence`` gains ``num_reported``.
+    """
+    c = config or VerdictConfig()
+    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
+    x2 = np.asarray(x2, np.float64).reshape(-1, 2)
+    ev = dict(decision.evidence, num_reported=len(x1))
+    if not decision or len(x1) == 0:
+        none = np.zeros(len(x1), bool)
+        return TwoViewGeometry(decision.verdict, decision.model, decision.F, decision.H, none, 0, len(x1),
+                               decision.reason, ev)
+    Fr, Hr = decision.F, decision.H
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if decision.model == "H":
+            inl = transfer_error(Hr, x1, x2) <= c.threshold_px
+            H2 = _fit_homography(x1, x2, c.threshold_px, c.max_iters, c.seed) if len(x1) >= 4 else None
+            if H2 is not None:
+                inl2 = transfer_error(H2, x1, x2) <= c.threshold_px
+                if inl2.sum() >= inl.sum():
+                    Hr, inl = H2, inl2
+        else:
+            if F is not None and np.all(np.isfinite(F)):
+                Fr = np.asarray(F, np.float64)
+            inl = sampson_distance(Fr, x1, x2) <= c.threshold_px
+    inl = np.asarray(inl, bool)
+    return TwoViewGeometry(decision.verdict, decision.model, Fr, Hr, inl, int(inl.sum()), len(x1), decision.reason, ev)
 
 
 def random_inlier_bound(m: int, p: float, sample: int, sigmas: float) -> float:

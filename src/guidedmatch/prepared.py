@@ -212,3 +212,50 @@ def prepare(features: Features, config: PreparedConfig | None = None) -> Prepare
 def as_prepared(x, config: PreparedConfig | None = None) -> PreparedImage:
     """``x`` itself when it is a :class:`PreparedImage`, else :func:`prepare` of it."""
     return x if isinstance(x, PreparedImage) else prepare(x, config)
+
+
+class UnguidedSearch:
+    """2-NN of image-1 query batches over all of image 2 for the matcher's unguided start (a context manager).
+
+    ``kind`` (chosen by :meth:`choose`): ``"ivf"`` -- the approximate index of image 2 (:meth:`PreparedImage.search2`),
+    ``"gemm"`` -- exact float GEMM top-2 (:class:`~guidedmatch.bruteforce.DenseKnn2`), ``"popcount"`` -- exact
+    Hamming top-2 of binary descriptors. :meth:`query` returns ``(i1, s1, i2, s2, comparisons)`` with squared L2
+    distances (float) or Hamming bit counts (binary), i.e. the candidate kernel's distance form.
+    """
+
+    KINDS = ("ivf", "gemm", "popcount")
+
+    def __init__(self, p1: PreparedImage, p2: PreparedImage, kind: str):
+        if kind not in self.KINDS:
+            raise ValueError(f"kind must be one of {self.KINDS}; got {kind!r}")
+        self.p1, self.p2, self.kind = p1, p2, kind
+        self._dense = None
+
+    @staticmethod
+    def choose(p2: PreparedImage, use_index: bool = True) -> str:
+        if p2.binary:
+            return "popcount"
+        return "ivf" if use_index and p2.has_index else "gemm"
+
+    def __enter__(self) -> "UnguidedSearch":
+        if self.kind == "gemm":
+            from .bruteforce import DenseKnn2
+
+            self._dense = DenseKnn2(self.p2.descriptors, self.p2.sqnorms).__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._dense is not None:
+            self._dense.__exit__(*exc)
+            self._dense = None
+
+    def query(self, queries: np.ndarray):
+        queries = np.asarray(queries, np.int64)
+        n2 = len(self.p2)
+        if self.kind == "ivf":
+            return self.p2.search2(self.p1.descriptors[queries])
+        if self.kind == "gemm":
+            i1, s1, i2, s2 = self._dense.query(self.p1.descriptors[queries])
+        else:
+            i1, s1, i2, s2 = kernels.hamming_top2(self.p1.kdesc[queries], self.p2.kdesc)
+        return i1, s1, i2, s2, len(queries) * n2
