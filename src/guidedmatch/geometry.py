@@ -48,8 +48,8 @@ import numpy as np
 
 from .epipolar import estimate_fundamental, sampson_distance
 
-__all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "report_geometry", "random_inlier_bound",
-           "COLMAP_CONFIG"]
+__all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "report_geometry",
+           "random_inlier_bound", "COLMAP_CONFIG"]
 
 #: verdict -> meaning.
 VERDICTS = {

@@ -39,7 +39,7 @@ class PreparedConfig:
     """How :func:`prepare` indexes an image for the unguided phase."""
 
     index: str = "ivf"                # approximate index of float descriptors: "ivf" (faiss IVF-Flat) or "none"
-    nlist_factor: float = 2.0         # IVF cells = nlist_factor * sqrt(N) (COLMAP uses 4; 2 measured as fast, same verdicts)
+    nlist_factor: float = 2.0         # IVF cells = nlist_factor * sqrt(N) (COLMAP: 4; 2 as fast, same verdicts)
     nprobe: int = 4                   # IVF cells searched per query
     train_per_list: int = 40          # k-means trained on at most this many descriptors per cell (faiss wants >= 39)
     kmeans_iters: int = 8             # k-means iterations of the IVF training
