@@ -567,15 +567,15 @@ def _occupied_strips_crossed(S, pts2, line, band, lo, hi):
     """Reference bound: the occupied strips of ``S`` that hold a point whose x lies in [lo, hi] and whose other
     coordinate lies within the band's extent over the strip -- i.e. strips the band really crosses inside the
     points' bounding box -- plus one strip either side for the cell-edge slack."""
-    sid = np.minimum(((pts2[:, 0] - S[0]) // S[2]).astype(np.int64), S[1] - 1)  # column strips (axis 0)
+    sid = np.minimum(((pts2[:, 0] - S.u0) // S.width).astype(np.int64), S.nstrips - 1)  # column strips (axis 0)
     occupied = np.unique(sid)
     a, b, c = line
     # a strip counts when the band's y-range over the strip's x-interval meets the points' y-extent
-    ky0, ky1 = S[3], S[3] + S[4] * S[5]
-    xs0 = S[0] + occupied * S[2]
-    ya, yb = -(a * xs0 + c) / b, -(a * (xs0 + S[2]) + c) / b
+    ky0, ky1 = S.k0, S.k0 + S.ncells * S.cell
+    xs0 = S.u0 + occupied * S.width
+    ya, yb = -(a * xs0 + c) / b, -(a * (xs0 + S.width) + c) / b
     m = band / abs(b)
-    meets = (np.maximum(ya, yb) + m >= ky0) & (np.minimum(ya, yb) - m <= ky1) & (xs0 + S[2] >= lo) & (xs0 <= hi)
+    meets = (np.maximum(ya, yb) + m >= ky0) & (np.minimum(ya, yb) - m <= ky1) & (xs0 + S.width >= lo) & (xs0 <= hi)
     return int(meets.sum()) + 2
 
 
@@ -608,17 +608,17 @@ def test_guided_top2_extreme_homography_work_bounded(kind):
     res = kernels.guided_top2(queries, kernel_desc(kind, desc1), kernel_desc(kind, desc2), lines, True, band,
                               xlo, xhi, cols, rows, return_visits=True)
     nvisit = res[5]
-    assert cols[1] > 1000  # the strip table itself is large (N-sized) ...
+    assert cols.nstrips > 1000  # the strip table itself is large (N-sized) ...
     bound = [_occupied_strips_crossed(cols, pts2, lines[k], band, xlo[k], xhi[k]) for k in range(nq)]
     assert np.all(nvisit <= bound)  # ... but each query walks only the occupied strips its band crosses
-    assert nvisit.sum() < 0.1 * nq * cols[1]
+    assert nvisit.sum() < 0.1 * nq * cols.nstrips
 
 
 def test_first_nonempty():
     pts = np.array([[0.0, 0.0], [0.5, 1.0], [10.0, 0.0], [30.0, 0.0]])
     S = kernels.build_strips(pts, 5.0, axis=0, cell=5.0)
     first = kernels.first_nonempty(S)
-    occupied = {int((x - S[0]) // S[2]) for x in pts[:, 0]}
-    for s in range(S[1] + 1):
-        want = min([o for o in occupied if o >= s], default=S[1])
+    occupied = {int((x - S.u0) // S.width) for x in pts[:, 0]}
+    for s in range(S.nstrips + 1):
+        want = min([o for o in occupied if o >= s], default=S.nstrips)
         assert first[s] == want

@@ -8,6 +8,8 @@ Index ``-1`` and distance ``+inf`` mean "no such candidate".
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
@@ -199,6 +201,25 @@ def hamming_col_best(q, t):
 
 
 # --------------------------------------------------------------------------- guided candidates
+class StripIndex(NamedTuple):
+    """Points indexed in strips cut into cells (:func:`build_strips`); a NamedTuple so the Numba kernels take it.
+
+    Strip ``s``, cell ``k`` (strip coordinate ``u`` in ``[u0 + s*width, u0 + (s+1)*width)``, other coordinate in
+    ``[k0 + k*cell, k0 + (k+1)*cell)``) holds rows ``offsets[s*ncells + k] : offsets[s*ncells + k + 1]`` of
+    ``pts_sorted``, which are the input points ``items[...]``.
+    """
+
+    u0: float                # strip origin along the strip axis, px
+    nstrips: int             # number of strips
+    width: float             # strip width, px
+    k0: float                # cell origin along the other axis, px
+    ncells: int              # cells per strip
+    cell: float              # cell height, px
+    offsets: np.ndarray      # (nstrips * ncells + 1,) int64 CSR offsets into items / pts_sorted
+    items: np.ndarray        # (N,) int64 input index of each sorted point
+    pts_sorted: np.ndarray   # (N, 2) float64 the points, strip by strip, cell by cell
+
+
 def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | None = None):
     """Index points ``(N, 2)`` in strips of ``width`` px along ``axis``, bucketed in cells along the other axis.
 
@@ -211,17 +232,15 @@ def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | Non
     ``cell`` defaults to ``width / 6``. Both sizes are enlarged when needed so the offset table has at most
     ``4 N + 4096`` cells (aligned coordinates can spread far out).
 
-    Returns the tuple ``S = (u0, nstrips, width, k0, ncells, cell, offsets, items, pts_sorted)``: strip ``s``,
-    cell ``k`` (``u`` in ``[u0 + s*width, ...)``, other coordinate in ``[k0 + k*cell, ...)``) holds rows
-    ``offsets[s*ncells + k] : offsets[s*ncells + k + 1]`` of ``pts_sorted (N,2) float64``, which are image-2
-    features ``items[...]``.
+    Returns a :class:`StripIndex`. ``build_strips(pts, w, axis=1, cell=w).items`` is also a row-major cell order
+    of the points (the matcher processes queries in it).
     """
     pts = np.asarray(pts, np.float64).reshape(-1, 2)
     width = float(width)
     cell = float(cell) if cell else width / 6.0
     n = len(pts)
     if n == 0:
-        return 0.0, 1, width, 0.0, 1, cell, np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+        return StripIndex(0.0, 1, width, 0.0, 1, cell, np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
     u, v = pts[:, axis], pts[:, 1 - axis]
     u0, k0 = float(u.min()), float(v.min())
     su, sv = float(u.max()) - u0, float(v.max()) - k0
@@ -234,7 +253,7 @@ def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | Non
     sid = np.minimum(((u - u0) // width).astype(np.int64), ns - 1)
     kid = np.minimum(((v - k0) // cell).astype(np.int64), nk - 1)
     items, offsets = counting_order(sid * nk + kid, ns * nk)
-    return u0, ns, width, k0, nk, cell, offsets, items, np.ascontiguousarray(pts[items])
+    return StripIndex(u0, ns, width, k0, nk, cell, offsets, items, np.ascontiguousarray(pts[items]))
 
 
 @njit(cache=True)
@@ -261,14 +280,14 @@ def counting_order(key, nbins):
 def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1, b2, j2, cnt):
     # all points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the region
     # predicate lo <= x <= hi and |a x + b y + c| <= band ([kmin, kmax] only limits the scan)
-    k0 = S[3]
-    nk = S[4]
-    h = S[5]
+    k0 = S.k0
+    nk = S.ncells
+    h = S.cell
     if kmax < k0 or kmin > k0 + nk * h:
         return b1, j1, b2, j2, cnt
     c0 = 0 if kmin <= k0 else min(int((kmin - k0) // h), nk - 1)
     c1 = nk - 1 if kmax >= k0 + nk * h else min(int((kmax - k0) // h), nk - 1)
-    offsets, items, ps = S[6], S[7], S[8]
+    offsets, items, ps = S.offsets, S.items, S.pts_sorted
     a = lq[0]
     b = lq[1]
     c = lq[2]
@@ -287,9 +306,9 @@ def first_nonempty(S):
     """``first[s]`` = the first strip ``>= s`` of strip index ``S`` (:func:`build_strips`) holding a point
     (``ns`` when none): ``(ns + 1,) int64``. The candidate kernel jumps over empty strips with it, so its walk
     costs at most one step per occupied strip, however far a transformed frame spreads the points."""
-    ns = S[1]
-    nk = S[4]
-    offsets = S[6]
+    ns = S.nstrips
+    nk = S.ncells
+    offsets = S.offsets
     first = np.empty(ns + 1, np.int64)
     first[ns] = ns
     for s in range(ns - 1, -1, -1):
@@ -325,12 +344,12 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     d2 = np.full(nq, np.inf, np.float32)
     ncand = np.zeros(nq, np.int64)
     nvisit = np.zeros(nq, np.int64)
-    w = cols[2]
-    gx0 = cols[0]
-    gx1 = gx0 + cols[1] * w
-    wr = rows[2]
-    gy0 = rows[0]
-    gy1 = gy0 + rows[1] * wr
+    w = cols.width
+    gx0 = cols.u0
+    gx1 = gx0 + cols.nstrips * w
+    wr = rows.width
+    gy0 = rows.u0
+    gy1 = gy0 + rows.nstrips * wr
     eps = 1e-7
     for q in prange(nq):
         qd = desc1[queries[q]]
@@ -348,15 +367,15 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
         vis = 0
         xa = max(lo, gx0)
         xb = min(hi, gx1)
-        if xa > xb or cols[7].shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
+        if xa > xb or cols.items.shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
             continue  # empty x-range, no image-2 points, or undefined epipolar line (query at the epipole)
         if not use_band or abs(b) >= abs(a):
             # vertical strips sorted by y; the band's y-extent over the strip's x-interval bounds the scan
             m = band / abs(b) if use_band else 0.0
             if use_band and abs(a) > 1e-300:
                 # x where the band meets the points' y-extent [ky0, ky1]: a x + c in [-b y - band, -b y + band]
-                ky0 = cols[3]
-                ky1 = ky0 + cols[4] * cols[5]
+                ky0 = cols.k0
+                ky1 = ky0 + cols.ncells * cols.cell
                 e1 = -b * ky0
                 e2 = -b * ky1
                 t1 = (min(e1, e2) - band - c) / a
@@ -367,7 +386,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 if xa > xb:
                     continue
             s_lo = int((xa - gx0) // w)
-            s_hi = min(int((xb - gx0) // w), cols[1] - 1)
+            s_hi = min(int((xb - gx0) // w), cols.nstrips - 1)
             s = fcols[s_lo]
             while s <= s_hi:
                 vis += 1
@@ -392,8 +411,8 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
             ry0 = gy0
             ry1 = gy1
             # rows where the band can meet x in [lo, hi] clipped to the points' x-extent [kx0, kx1]
-            xl = max(lo, rows[3])
-            xr = min(hi, rows[3] + rows[4] * rows[5])
+            xl = max(lo, rows.k0)
+            xr = min(hi, rows.k0 + rows.ncells * rows.cell)
             if xl > xr:
                 continue
             if abs(b) > 1e-12:
@@ -406,7 +425,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
             if ry0 > ry1:
                 continue
             r_lo = max(0, int((ry0 - gy0) // wr))
-            r_hi = min(rows[1] - 1, int((ry1 - gy0) // wr))
+            r_hi = min(rows.nstrips - 1, int((ry1 - gy0) // wr))
             r = frows[r_lo]
             while r <= r_hi:
                 vis += 1
@@ -463,7 +482,7 @@ def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, ro
     lines = np.ascontiguousarray(lines, np.float64).reshape(-1, 3)
     if len(lines) != len(queries) or len(xlo) != len(queries) or len(xhi) != len(queries):
         raise ValueError("queries, lines, xlo and xhi must have the same length")
-    if use_band and len(cols[7]) and not len(rows[7]):
+    if use_band and len(cols.items) and not len(rows.items):
         if np.any(np.abs(lines[:, 0]) > np.abs(lines[:, 1])):
             raise ValueError("near-vertical epipolar lines need the row strips (build_strips(pts, width, axis=1))")
     fm = desc1.dtype.kind == "f"

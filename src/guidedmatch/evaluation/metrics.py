@@ -12,7 +12,7 @@ One *row* (a plain ``dict``, JSON-ready) per (pair, method):
 ``precision``              ``true_correspondences / matches`` (Sec. IV-A), ``None`` w/o GT or matches
 ``ransac_inliers``         matches consistent with a fundamental matrix fitted by RANSAC to the matches
 ``ransac_precision``       ``ransac_inliers / matches``: the paper's precision for real images (Table 8)
-``time_s``                 matching wall time from ``MatchResult.stats["time_s"]``
+``time_s``                 matching wall time from ``MatchResult.stats.time_s``
 =========================  =========================================================================
 
 RANSAC-F choice (the paper only says "RANSAC with epipolar geometry"): F is fitted with
@@ -119,8 +119,8 @@ def evaluate_matches(
     """One metrics row for one (pair, method).
 
     Args:
-        result: the matcher output; ``stats["comparisons"]`` (may be ``None``) and ``stats["time_s"]`` are
-            copied, ``stats["method"]`` is used when ``method`` is not given.
+        result: the matcher output; ``stats.comparisons`` (may be ``None``) and ``stats.time_s`` are
+            copied, ``stats.method`` is used when ``method`` is not given.
         features1, features2: ``Features`` (anything with ``.keypoints``) or ``(N, 2)`` keypoint arrays.
         gt: ``HomographyGT`` / ``EpipolarGT`` (anything with ``correct(pts1, pts2, threshold)``) or ``None``.
         threshold: GT correctness threshold in px (paper: 3).
@@ -137,11 +137,11 @@ def evaluate_matches(
     if m and (pairs.min() < 0 or pairs[:, 0].max() >= len(kp1) or pairs[:, 1].max() >= len(kp2)):
         raise IndexError("match indices out of range of the keypoint arrays")
     p1, p2 = kp1[pairs[:, 0]], kp2[pairs[:, 1]]
-    stats = result.stats or {}
-    comps = stats.get("comparisons")
+    stats = result.stats
+    comps = stats.comparisons
     row: dict[str, Any] = {
         "pair": pair,
-        "method": method if method is not None else stats.get("method"),
+        "method": method if method is not None else stats.method,
         "n_features1": len(kp1),
         "n_features2": len(kp2),
         "comparisons": None if comps is None else int(comps),
@@ -150,7 +150,7 @@ def evaluate_matches(
         "precision": None,
         "ransac_inliers": None,
         "ransac_precision": None,
-        "time_s": None if stats.get("time_s") is None else float(stats["time_s"]),
+        "time_s": float(stats.time_s),
     }
     if gt is not None:
         ok = np.asarray(gt.correct(p1, p2, threshold), dtype=bool) if m else np.zeros(0, bool)
