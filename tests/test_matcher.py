@@ -5,7 +5,8 @@ from guidedmatch.bruteforce import match_bruteforce
 from guidedmatch.features import Features, detect
 from guidedmatch.matcher import MODES, MatcherConfig, match
 
-FAST = MatcherConfig(update_every=60, num_updates=2)  # small scene: fewer correspondences per update
+# small scene: fewer correspondences per update; auto_bf off (below 2000 features guidance is replaced by BF)
+FAST = MatcherConfig(update_every=60, num_updates=2, auto_bf=False)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,7 @@ def test_bf_mode_equals_bruteforce_module(scene_and_features):
 
 def test_final_pass_pairs_lie_in_reference_candidate_sets_and_counts_are_exact(scene_and_features):
     s, f1, f2 = scene_and_features
-    cfg = FAST.replace(recheck=False)
+    cfg = FAST.replace(recheck=False, unguided_index=False)  # exact unguided start: N2 comparisons per query
     r, models = match(f1, f2, "so+epi+ia", cfg, return_models=True)
     assert models is not None and models.so is not None and models.F is not None
     final = models.final_queries
@@ -110,7 +111,7 @@ def test_unusable_so_model_falls_back_and_reports(scene_and_features, monkeypatc
 
 def test_too_few_correspondences_reports_missing_updates(scene_and_features):
     _, f1, f2 = scene_and_features
-    r = match(f1, f2, "so+epi+ia", MatcherConfig(update_every=100000, one_to_one=False))
+    r = match(f1, f2, "so+epi+ia", MatcherConfig(update_every=100000, one_to_one=False, start="paper", auto_bf=False))
     assert r.stats.num_model_updates == 0
     assert any(f.what == "updates" for f in r.stats.fallbacks)
     b = match(f1, f2, "bf")
@@ -127,10 +128,14 @@ def _feats(n, seed=0, size=(100, 100)):
 def test_empty_and_tiny_inputs_return_cleanly(n1, n2, mode):
     r = match(_feats(n1, 1), _feats(n2, 2), mode)
     assert r.pairs.shape == (len(r), 2) and len(r) <= min(n1, n2)
+    assert r.geometry is not None and r.geometry.inliers.shape == (len(r),) and not r.geometry
     # too few features for any model: every mode degrades to brute force and says so
     assert r.stats.comparisons == n1 * n2
     if mode != "bf" and n1 and n2:
-        assert any(f.what == "updates" for f in r.stats.fallbacks)
+        assert "auto_bf" in r.stats.details  # chosen up front (auto_bf) ...
+        g = match(_feats(n1, 1), _feats(n2, 2), mode, MatcherConfig(auto_bf=False))
+        assert g.stats.comparisons == n1 * n2  # ... or found out by the guided run
+        assert any(f.what in ("no_model", "updates") for f in g.stats.fallbacks)
 
 
 def test_identical_images(scene_and_features):

@@ -50,7 +50,6 @@ full check in every mode: ``(i, j)`` survives only if ``i`` is the nearest of *a
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -59,7 +58,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import kernels
-from .bruteforce import DenseKnn2, check_descriptors, knn2, match_bruteforce
+from .bruteforce import check_descriptors, knn2, match_bruteforce
 from .config import MODES, MatcherConfig, Mode
 from .epipolar import map_points
 from .features import as_features
@@ -98,38 +97,76 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     >>> res = match((xy, desc, (100, 100)), (xy[::-1], desc[::-1], (100, 100)), "so+epi+ia")
     >>> bool(np.all(res.pairs[:, 1] == 49 - res.pairs[:, 0])), len(res) == 50
     (True, True)
-    >>> res.stats.comparisons == 50 * 50   # too few features for a model: brute force, reported
+    >>> res.stats.comparisons == 50 * 50   # too few features for guidance to win: brute force, reported
     True
-    >>> res.stats.fallbacks[0].what
-    'updates'
+    >>> res.stats.details["auto_bf"].split(":")[0], res.geometry.verdict
+    ('brute force instead of guided matching', 'verified')
     """
+    from .prepared import PreparedImage, prepare
+
     mode = Mode.parse(mode)
     config = config_from(MatcherConfig, config)
-    f1, f2 = as_features(features1, "features1"), as_features(features2, "features2")
+    p1 = features1 if isinstance(features1, PreparedImage) else None
+    p2 = features2 if isinstance(features2, PreparedImage) else None
+    f1 = p1.features if p1 is not None else as_features(features1, "features1")
+    f2 = p2.features if p2 is not None else as_features(features2, "features2")
     d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors)
     if not mode.guided:
-        res = _match_bf(config, f1, f2, d1, d2, binary)
+        res = _match_bf(config, f1, f2, d1, d2, binary, mode)
         return (res, None) if return_models else res
-    run = _GuidedRun(config, mode, f1, f2, d1, d2, binary)
+    why = _bf_wins(config, len(d1), len(d2), binary)
+    if why:
+        res = _match_bf(config, f1, f2, d1, d2, binary, mode, why)
+        return (res, None) if return_models else res
+    run = _GuidedRun(config, mode, p1 or prepare(f1), p2 or prepare(f2), d1, d2, binary)
     res = run.run()
     return (res, run.guidance) if return_models else res
 
 
-def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary) -> MatchResult:
-    """Mode ``bf``: exact 2-NN over all of image 2, ratio / max-distance / mutual tests, then one-to-one if on."""
+def _bf_wins(c: MatcherConfig, n1: int, n2: int, binary: bool) -> str | None:
+    """Why brute force replaces a guided mode (``auto_bf``), or None.
+
+    Guidance has a fixed cost (three robust fits, the spatial-order model, the verdict) that brute force does not
+    pay; below a size it cannot win. Measured on Herz-Jesus-P8 pairs (2 cores, loaded machine, one run each,
+    ``/tmp/pairs/bintime.py``, ``bin40.py``): ORB guided/BF time 8.1-11.8x at 1-2k features, 1.0-4.0x at 7k,
+    1.5/0.96x at 10k/20k, 0.12/0.48x at 40k; AKAZE and BRISK 0.9-10x up to 7k; SIFT 0.6-1.8x at 1-4k.
+    """
+    if not c.auto_bf:
+        return None
+    size = (float(n1) * float(n2)) ** 0.5
+    limit = c.bf_below_binary if binary else c.bf_below_float
+    if size < limit:
+        kind = "binary" if binary else "float"
+        return (f"brute force instead of guided matching: sqrt(N1*N2) = {size:.0f} < bf_below_{kind} = {limit} "
+                f"({kind} descriptors), where guidance cannot win")
+    return None
+
+
+def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary, mode: Mode, auto_reason: str | None = None) -> MatchResult:
+    """Mode ``bf`` (or a guided mode replaced by brute force, ``auto_reason``): exact 2-NN over all of image 2,
+    ratio / max-distance / mutual tests, one-to-one if on for ``mode``, and the two-view verdict from one robust
+    fit on the matches (:func:`~guidedmatch.geometry.two_view_geometry`; nothing selected them by a model)."""
+    from .geometry import VerdictConfig, two_view_geometry
+
     t0 = time.perf_counter()
     res = match_bruteforce(d1, d2, ratio=c.ratio, mutual=c.mutual, max_distance=c.max_distance)
     pairs, dist = res.pairs, res.distances
     dropped = 0
-    if c.one_to_one_in(Mode.parse("bf")) and len(pairs):
+    if c.one_to_one_in(mode) and len(pairs):
         sel = one_to_one(pairs[:, 0], pairs[:, 1], dist)
         dropped = len(pairs) - len(sel)
         pairs, dist = pairs[sel], dist[sel]
+    t1 = time.perf_counter()
+    geometry = two_view_geometry(f1.keypoints[pairs[:, 0]], f2.keypoints[pairs[:, 1]], f1.image_size,
+                                 f2.image_size, VerdictConfig(seed=c.seed))
     n1, n2 = len(d1), len(d2)
+    details = dict(res.stats.details, verdict_s=time.perf_counter() - t1)
+    if auto_reason:
+        details.update(requested_mode=mode.name, auto_bf=auto_reason)
     stats = dataclasses.replace(res.stats, time_s=time.perf_counter() - t0, dropped_by_one_to_one=dropped,
                                 phase_queries=(n1,), phase_comparisons=(n1 * n2,), queries_matched_against=n1,
-                                config=c)
-    return MatchResult(pairs, dist, stats, default_flags(len(pairs)))
+                                config=c, details=details)
+    return MatchResult(pairs, dist, stats, default_flags(len(pairs)), geometry)
 
 
 # ================================================================================================ §III-A draw order
@@ -324,18 +361,24 @@ class _Collected:
 class _GuidedRun:
     """State of one guided match (not public); :meth:`run` is the method in order."""
 
-    def __init__(self, config: MatcherConfig, mode: Mode, f1, f2, d1, d2, binary):
+    def __init__(self, config: MatcherConfig, mode: Mode, p1, p2, d1, d2, binary):
         self.c = config
         self.mode = mode
-        self.f1, self.f2 = f1, f2
+        self.p1, self.p2 = p1, p2  # guidedmatch.prepared.PreparedImage of each side
+        self.f1, self.f2 = p1.features, p2.features
         self.d1, self.d2, self.binary = d1, d2, binary
-        self.kdesc1 = kernels.pack_bits_u64(d1) if binary else d1
-        self.kdesc2 = kernels.pack_bits_u64(d2) if binary else d2
-        self.byte_exact = False
-        if not binary:  # byte-valued float descriptors (OpenCV SIFT): exact int32 L2 on uint8 copies in the kernel
-            u1, u2 = kernels.as_exact_uint8(d1), kernels.as_exact_uint8(d2)
-            if u1 is not None and u2 is not None:
-                self.kdesc1, self.kdesc2, self.byte_exact = u1, u2, True
+        # descriptors in the kernel's form, prepared once per image: packed words (binary); byte-valued float
+        # descriptors (OpenCV SIFT) as exact uint8 copies (int32 L2 in the kernel) when both sides are byte-valued
+        self.byte_exact = bool(p1.byte_exact and p2.byte_exact)
+        if binary or self.byte_exact:
+            self.kdesc1, self.kdesc2 = p1.kdesc, p2.kdesc
+        else:
+            self.kdesc1, self.kdesc2 = d1, d2
+        self.checks: list[dict] = []            # verdict checks of the unguided start
+        self.decision = None                    # the last TwoViewGeometry decided on unguided evidence
+        self.early_exit: str | None = None
+        self.unguided_search = None             # "ivf" | "gemm" | "popcount"
+        self.unguided_comparisons = 0
         self.fallbacks: list[Fallback] = []
         self.ncand: list[np.ndarray] = []
         self.timing = dict.fromkeys((f.name for f in dataclasses.fields(PhaseTimes)), 0.0)
@@ -390,48 +433,141 @@ class _GuidedRun:
         return draw_order(x, w, self.c.num_groups, key)
 
     def progressive_phase(self, order: np.ndarray, got: _Collected) -> tuple[GuidanceModels | None, np.ndarray]:
-        """Steps 2-4 (§III-A): mini-batches, unguided until the first models, guided after; refit the models after
-        every ``update_every`` new correspondences, ``num_updates`` times. Returns the last models and the queries
-        left for the final pass."""
+        """Steps 2-4 (§III-A): mini-batches, unguided until the first models (:meth:`unguided_start`), guided after;
+        refit the models after every ``update_every`` new correspondences, ``num_updates`` times. Returns the last
+        models and the queries left for the final pass (none after an early exit)."""
         c = self.c
-        models: GuidanceModels | None = None
-        since = total = ptr = 0
-        with contextlib.ExitStack() as stack:  # closes the unguided-phase searcher (restores BLAS threads)
-            dense = None
-            while ptr < len(order) and len(self.updates) < c.num_updates:
-                batch = order[ptr: ptr + c.batch_size]
-                ptr += len(batch)
-                t0 = time.perf_counter()
-                if models is not None and models.guided:
-                    acc = self.guided_batch(models, batch)
-                    self.timing["guided_progressive_s"] += time.perf_counter() - t0
-                else:
-                    if dense is None and not self.binary:
-                        dense = stack.enter_context(DenseKnn2(self.d2))
-                    acc = self.unguided_batch(batch, dense)
-                    self.timing["initial_bf_s"] += time.perf_counter() - t0
-                got.add(acc, len(self.updates))
-                since += len(acc.q)
-                total += len(acc.q)
-                if since >= c.update_every and total >= c.min_model_matches:
-                    since = 0
-                    models = self.fit_models(*got.pairs_so_far())
+        if c.num_updates == 0 or len(order) == 0:
+            return None, order
+        models, ptr = self.unguided_start(order, got)
+        if models is None:  # no verified evidence: nothing guides; early exit leaves the rest unmatched
+            if self.early_exit is None and ptr < len(order):
+                return None, order[ptr:]
+            return None, order[:0]
+        since = 0
+        total = sum(len(a.q) for a, _ in got.parts)
+        while ptr < len(order) and len(self.updates) < c.num_updates:
+            batch = order[ptr: ptr + c.batch_size]
+            ptr += len(batch)
+            t0 = time.perf_counter()
+            acc = self.guided_batch(models, batch) if models.guided else self.unguided_batch(batch)
+            self.timing["guided_progressive_s"] += time.perf_counter() - t0
+            got.add(acc, len(self.updates))
+            since += len(acc.q)
+            total += len(acc.q)
+            if since >= c.update_every:
+                since = 0
+                models = self.fit_models(*got.pairs_so_far())
         if len(self.updates) < c.num_updates and len(self.d1):
             self.fallback("updates", f"only {len(self.updates)} of {c.num_updates} model updates: "
                           f"{total} correspondences from all {len(self.d1)} features (need {c.update_every} per update)")
         return models, order[ptr:]
 
-    def unguided_batch(self, queries: np.ndarray, dense: "DenseKnn2 | None" = None) -> _Accepted:
-        """Step 2: exact 2-NN of ``queries`` over all of image 2 (``dense``: the progressive phase's batch searcher)."""
-        if dense is not None and not self.binary:
-            i1, s1, _i2, s2 = dense.query(self.d1[queries])  # squared distances
-        else:
-            if self.d2_sqnorms is None and not self.binary:
-                self.d2_sqnorms = np.einsum("ij,ij->i", self.d2, self.d2)
-            (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
-            # knn2 returns L2 distances; convert back to the kernel's squared form for select()
-            if not self.binary:
-                s1, s2 = s1 * s1, s2 * s2
+    def unguided_start(self, order: np.ndarray, got: _Collected) -> tuple[GuidanceModels | None, int]:
+        """Step 2 (§III-A; the gate is beyond the paper, issue 11): match drawn features against all of image 2
+        until a first model may guide. Returns ``(models or None, queries consumed)``.
+
+        ``start="paper"``: the first model is fitted after ``update_every`` correspondences (exact search), whatever
+        they are; the verdict on them is only reported. ``start="verified"``: the unguided correspondences are the
+        evidence (no model selected them). After ``first_check`` of them, and each time they have grown by
+        ``check_growth``, :func:`~guidedmatch.geometry.two_view_geometry` decides; the first model is fitted as soon
+        as it says "verified" -- a model fitted on too little evidence never guides. The search is the approximate
+        index of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`, ``unguided_index``) or exact. When the
+        start has spent ``max_unguided * N1 * N2`` comparisons without verified evidence it stops (early exit, verdict
+        from the last check: "no-overlap" / "too-few-matches"), the remaining features are not matched.
+        """
+        from .prepared import UnguidedSearch
+
+        c = self.c
+        n1, n2 = len(self.d1), len(self.d2)
+        paper = c.start == "paper"
+        kind = UnguidedSearch.choose(self.p2, use_index=c.unguided_index and not paper)
+        if kind == "ivf" and self.p2._index is None:
+            t0 = time.perf_counter()
+            self.p2.index()
+            self.timing["index_build_s"] += time.perf_counter() - t0
+        self.unguided_search = kind
+        frac = c.max_unguided if c.max_unguided is not None else (0.025 if kind == "ivf" else 0.25)
+        budget = frac * n1 * n2
+        bs = c.batch_size if kind != "ivf" else max(c.batch_size, 256)  # an index search has no GEMM to fill
+        models = None
+        total = ptr = 0
+        next_check = max(c.first_check, c.min_model_matches)
+        checked_at = -1
+        with UnguidedSearch(self.p1, self.p2, kind) as search:
+            while ptr < len(order):
+                batch = order[ptr: ptr + bs]
+                ptr += len(batch)
+                t0 = time.perf_counter()
+                acc = self.unguided_batch(batch, search)
+                self.timing["initial_bf_s"] += time.perf_counter() - t0
+                got.add(acc, 0)
+                total += len(acc.q)
+                if paper:
+                    if total >= c.update_every and total >= c.min_model_matches:
+                        self.decide(got)
+                        models = self.fit_models(*got.pairs_so_far())
+                        break
+                    continue
+                if total >= next_check:
+                    checked_at = total
+                    if self.decide(got):
+                        models = self.fit_models(*got.pairs_so_far())
+                        break
+                    next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
+                if self.unguided_comparisons >= budget and ptr < len(order):
+                    self.early_exit = (f"unguided start spent {self.unguided_comparisons / max(n1 * n2, 1):.1%} of "
+                                       f"N1*N2 ({frac:.1%} allowed) on {ptr} of {n1} features without verified "
+                                       f"evidence; the remaining {len(order) - ptr} features are not matched")
+                    break
+        if models is None:
+            if checked_at != total or self.decision is None:
+                self.decide(got)  # the verdict on all the evidence there is
+            if paper:
+                self.fallback("updates", f"only 0 of {c.num_updates} model updates: {total} correspondences from all "
+                              f"{n1} features (need {c.update_every} per update)")
+                return None, ptr
+            what = "early_exit" if self.early_exit else "no_model"
+            why = self.early_exit or (f"the unguided correspondences were never verified (last verdict "
+                                      f"{self.decision.verdict!r}); every feature matched against all of image 2")
+            self.fallback(what, why + f"; {self.decision.reason}")
+        return models, ptr
+
+    def decide(self, got: _Collected):
+        """The two-view verdict on the unguided correspondences so far (phase 0: no model selected them)."""
+        from .geometry import VerdictConfig, two_view_geometry
+
+        t0 = time.perf_counter()
+        q = np.concatenate([a.q for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
+        j = np.concatenate([a.j for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
+        g = two_view_geometry(self.f1.keypoints[q], self.f2.keypoints[j], self.f1.image_size, self.f2.image_size,
+                              VerdictConfig(seed=self.c.seed))
+        self.decision = g
+        self.checks.append(dict(evidence=int(len(q)), verdict=g.verdict, model=g.model,
+                                F_inliers=g.evidence.get("F_inliers"), H_inliers=g.evidence.get("H_inliers"),
+                                bound_F=round(float(g.evidence.get("random_bound_F", 0.0)), 1),
+                                comparisons=int(self.unguided_comparisons)))
+        self.timing["verdict_s"] += time.perf_counter() - t0
+        return g
+
+    def unguided_batch(self, queries: np.ndarray, search=None) -> _Accepted:
+        """Step 2: 2-NN of ``queries`` over all of image 2: ``search`` (:class:`~guidedmatch.prepared.UnguidedSearch`,
+        the unguided start) or exact (a final pass without models)."""
+        if search is not None:
+            i1, s1, i2, s2, comp = search.query(queries)
+            self.account(len(queries), comp)
+            self.unguided_comparisons += comp
+            nq = max(len(queries), 1)
+            self.ncand.append(np.full(len(queries), comp // nq, np.int64))
+            # single-candidate logic: an index search that found one neighbour has no second to test against
+            found = np.where(i2 >= 0, 2, np.where(i1 >= 0, 1, 0))
+            return self.select(queries, i1, s1, s2, np.minimum(found, len(self.d2)))
+        if self.d2_sqnorms is None and not self.binary:
+            self.d2_sqnorms = self.p2.sqnorms
+        (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
+        # knn2 returns L2 distances; convert back to the kernel's squared form for select()
+        if not self.binary:
+            s1, s2 = s1 * s1, s2 * s2
         n2 = len(self.d2)
         self.account(len(queries), len(queries) * n2)
         nc = np.full(len(queries), n2, np.int64)
@@ -476,8 +612,6 @@ class _GuidedRun:
             x1_range = (float(xin.min()), float(xin.max()))
         so = self.fit_spatial_order(pts1a, pts2a, acc_i, acc_j, inl if F is not None else None, info) \
             if self.mode.use_so else None
-        if not np.allclose(H2, np.eye(3)):
-            info["alignment_scale"] = _local_scale_range(H2, k2)
         self.updates.append(ModelUpdate(**info))
         self.strip_cache = {}
         self.timing["model_fit_s"] += time.perf_counter() - t0
@@ -498,15 +632,23 @@ class _GuidedRun:
         return fr.F, np.asarray(fr.inliers, bool)
 
     def fit_alignment(self, F, p1_in, p2_in, info: dict):
-        """§III-E: alignment homographies ``(H1, H2)`` from F (Bougnoux focal, pose, ``alignment`` approach);
-        identity when it fails (reported)."""
+        """§III-E: alignment homographies ``(H1, H2)`` from F (Bougnoux focal, pose, ``alignment`` approach),
+        validated over the keypoints (:func:`~guidedmatch.alignment.safe_alignment`: local scale, orientation, line at
+        infinity); a rejected approach falls back to the in-plane rotation, then to none (reported)."""
         from . import alignment
 
-        al = alignment.align_from_fundamental(F, p1_in, p2_in, self.f1.image_size, self.f2.image_size,
-                                              approach=self.c.alignment)
-        if not al:
-            self.fallback("alignment", f"alignment failed: {al.reason}; matching in original coordinates")
+        safe = alignment.safe_alignment(F, p1_in, p2_in, self.f1.image_size, self.f2.image_size, self.c.alignment,
+                                        self.f2.keypoints, self.f1.keypoints)
+        for ap, why in safe.fallbacks:
+            nxt = {"c_inplane": "in-plane rotation only (c_inplane)", "none": "original coordinates"}
+            used = nxt.get(safe.approach, safe.approach) if (ap, why) == safe.fallbacks[-1] else "the next approach"
+            self.fallback("alignment", f"alignment {ap!r} rejected: {why}; {used} used")
+        info["alignment"] = safe.approach
+        if safe.approach != "none":
+            info["alignment_scale"] = tuple(float(v) for v in safe.check.scale_range)  # over the image-2 keypoints
+        if safe.result is None:
             return np.eye(3), np.eye(3)
+        al = safe.result
         H1, H2 = np.asarray(al.H1, float), np.asarray(al.H2, float)
         foc = al.focal
         info.update(focal=(float(foc.f1), float(foc.f2)), focal_fallback=(bool(foc.fallback1), bool(foc.fallback2)),
@@ -677,6 +819,17 @@ class _GuidedRun:
         return out
 
     def result(self, t_start, models, q, j, d, flags, dropped_recheck, dropped_o2o, dropped_mutual) -> MatchResult:
+        from .geometry import VerdictConfig, report_geometry
+
+        t0 = time.perf_counter()
+        x1, x2 = self.f1.keypoints[q], self.f2.keypoints[j]
+        if self.decision is None:  # no unguided start ran (num_updates = 0): every match is unguided evidence
+            got = _Collected()
+            got.add(_Accepted(q, j, d, np.zeros(len(q), bool)), 0)
+            self.decide(got)
+        final_F = models.F if models is not None and models.F is not None else None
+        geometry = report_geometry(self.decision, x1, x2, F=final_F, config=VerdictConfig(seed=self.c.seed))
+        self.timing["verdict_s"] += time.perf_counter() - t0
         n1, n2 = len(self.d1), len(self.d2)
         nphase = len(self.updates) + 1
         phase_comparisons = tuple(self.phase_comparisons.get(k, 0) for k in range(nphase))
@@ -692,9 +845,11 @@ class _GuidedRun:
             F=None if models is None or models.F is None else np.asarray(models.F),
             alignment_H2=None if models is None or np.allclose(models.H2, np.eye(3)) else np.asarray(models.H2),
             phase_queries=tuple(self.phase_queries.get(k, 0) for k in range(nphase)),
-            phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c)
+            phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c,
+            details=dict(unguided_search=self.unguided_search, verdict_checks=tuple(self.checks),
+                         early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons)))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
-        return MatchResult(pairs, d, stats, flags)
+        return MatchResult(pairs, d, stats, flags, geometry)
 
 
 def _argsort_f32(key: np.ndarray) -> np.ndarray:
@@ -704,14 +859,3 @@ def _argsort_f32(key: np.ndarray) -> np.ndarray:
     b = np.where(b >> np.uint64(31), ~b & np.uint64(0xFFFFFFFF), b | np.uint64(0x80000000))
     comp = (b << np.uint64(32)) | np.arange(len(b), dtype=np.uint64)
     return (np.sort(comp) & np.uint64(0xFFFFFFFF)).astype(np.int64)
-
-
-def _local_scale_range(H: np.ndarray, pts: np.ndarray) -> tuple[float, float]:
-    """Min/max of sqrt|det J| of the homography at ``pts`` (how H2 stretches distances there)."""
-    if len(pts) == 0:
-        return (1.0, 1.0)
-    p = map_points(H, pts)
-    w = p[:, 2]
-    # det of the Jacobian of a homography at x: det(H) / w^3
-    s = np.sqrt(np.abs(np.linalg.det(H) / w**3))
-    return (float(np.min(s)), float(np.max(s)))
