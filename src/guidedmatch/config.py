@@ -111,6 +111,8 @@ class MatcherConfig:
                                          # "paper": first model after update_every correspondences, whatever they are
     first_check: int = 32                # unguided correspondences before the first verdict check (start="verified")
     check_growth: float = 1.5            # the next check waits until the evidence has grown by this factor
+    verdict_iters: int = 1000            # RANSAC iterations of each verdict check (8192 SIFT, 28 + 5 pairs: same verdicts
+                                         # as 10000 on every unrelated and every pair verified at 10000 but 0000-0005/7)
     max_unguided: float | None = None    # early "no-overlap" exit: stop when the unguided start has spent this fraction of
                                          # N1*N2 comparisons without verified evidence; None: 0.025 with the approximate
                                          # index of image 2, 0.25 with exact search
@@ -150,6 +152,7 @@ class MatcherConfig:
         check_choice(o, "start", self.start, ("verified", "paper"))
         check_number(o, "first_check", self.first_check, lo=8, integer=True)
         check_number(o, "check_growth", self.check_growth, lo=1, lo_open=True, hi=16)
+        check_number(o, "verdict_iters", self.verdict_iters, lo=1, integer=True)
         check_number(o, "max_unguided", self.max_unguided, lo=0, lo_open=True, hi=1, allow_none=True)
         check_bool(o, "unguided_index", self.unguided_index)
         check_bool(o, "auto_bf", self.auto_bf)

@@ -446,13 +446,20 @@ class _GuidedRun:
             return None, order[:0]
         since = 0
         total = sum(len(a.q) for a, _ in got.parts)
+        drawn = accepted = 0  # guided queries so far and their accepted matches (the acceptance rate)
         while ptr < len(order) and len(self.updates) < c.num_updates:
-            batch = order[ptr: ptr + c.batch_size]
+            # batches sized by the observed acceptance rate to reach the next update in about one batch (at least
+            # batch_size): few kernel calls on low-overlap pairs, the same update points on rich ones
+            rate = (accepted + 1.0) / (drawn + 1.0) if drawn else 1.0
+            bs = int(min(max(c.batch_size, np.ceil((c.update_every - since) / rate)), 8 * c.batch_size + c.update_every))
+            batch = order[ptr: ptr + (bs if drawn else c.batch_size)]
             ptr += len(batch)
             t0 = time.perf_counter()
             acc = self.guided_batch(models, batch) if models.guided else self.unguided_batch(batch)
             self.timing["guided_progressive_s"] += time.perf_counter() - t0
             got.add(acc, len(self.updates))
+            drawn += len(batch)
+            accepted += len(acc.q)
             since += len(acc.q)
             total += len(acc.q)
             if since >= c.update_every:
@@ -512,7 +519,8 @@ class _GuidedRun:
                 if total >= next_check:
                     checked_at = total
                     if self.decide(got):
-                        models = self.fit_models(*got.pairs_so_far())
+                        # the verdict's F was fitted robustly on exactly this evidence: the first model reuses it
+                        models = self.fit_models(*got.pairs_so_far(), F_hint=self.decision.F)
                         break
                     next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
                 if self.unguided_comparisons >= budget and ptr < len(order):
@@ -541,7 +549,7 @@ class _GuidedRun:
         q = np.concatenate([a.q for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
         j = np.concatenate([a.j for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
         g = two_view_geometry(self.f1.keypoints[q], self.f2.keypoints[j], self.f1.image_size, self.f2.image_size,
-                              VerdictConfig(seed=self.c.seed))
+                              VerdictConfig(seed=self.c.seed, max_iters=self.c.verdict_iters))
         self.decision = g
         self.checks.append(dict(evidence=int(len(q)), verdict=g.verdict, model=g.model,
                                 F_inliers=g.evidence.get("F_inliers"), H_inliers=g.evidence.get("H_inliers"),
@@ -590,7 +598,7 @@ class _GuidedRun:
         return _Accepted(queries[keep], i1[keep], dist1[keep].astype(np.float32), single[keep])
 
     # ------------------------------------------------------------------------------------------ step 3: models
-    def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray) -> GuidanceModels:
+    def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray, F_hint: np.ndarray | None = None) -> GuidanceModels:
         """Step 3 (§III-B..E): refit F, the alignment and the spatial-order model on all correspondences so far."""
         t0 = time.perf_counter()
         k1, k2 = self.f1.keypoints, self.f2.keypoints
@@ -599,7 +607,7 @@ class _GuidedRun:
         F = inl = None
         H1, H2 = np.eye(3), np.eye(3)
         if self.mode.use_epi or self.mode.use_ia:
-            F, inl = self.fit_fundamental(p1, p2, info)
+            F, inl = self.fit_fundamental(p1, p2, info, F_hint)
         if self.mode.use_ia and F is not None:
             H1, H2 = self.fit_alignment(F, p1[inl], p2[inl], info)
         H1, H2, pts1a, pts2a = self.aligned_points(H1, H2)
@@ -618,11 +626,19 @@ class _GuidedRun:
         return GuidanceModels(F, F_aligned, x1_range, H1, H2, so, pts1a, pts2a, float(self.c.band_px),
                               self.c.outside_window)
 
-    def fit_fundamental(self, p1, p2, info: dict):
-        """§III-D: F by OpenCV USAC (``ransac_method``); returns ``(F, inlier mask)`` or ``(None, None)`` (reported)."""
+    def fit_fundamental(self, p1, p2, info: dict, F_hint: np.ndarray | None = None):
+        """§III-D: F by OpenCV USAC (``ransac_method``); returns ``(F, inlier mask)`` or ``(None, None)`` (reported).
+        ``F_hint``: an F already fitted robustly on these correspondences (the verdict's): reused when at least 8 of
+        them lie within ``ransac_threshold`` (Sampson) of it."""
         from . import epipolar
 
         c = self.c
+        if F_hint is not None and np.all(np.isfinite(F_hint)):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                inl = epipolar.sampson_distance(F_hint, p1, p2) <= c.ransac_threshold
+            if inl.sum() >= epipolar.MIN_POINTS:
+                info["F_inliers"] = int(inl.sum())
+                return np.asarray(F_hint, np.float64), inl
         fr = epipolar.estimate_fundamental(p1, p2, method=c.ransac_method, threshold=c.ransac_threshold, seed=c.seed)
         if not fr:
             self.fallback("fundamental", f"F estimation failed: {fr.reason}; "
