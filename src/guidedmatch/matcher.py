@@ -503,7 +503,11 @@ class _GuidedRun:
         checked_at = -1
         with UnguidedSearch(self.p1, self.p2, kind) as search:
             while ptr < len(order):
-                batch = order[ptr: ptr + bs]
+                n = bs
+                if not paper and ptr:  # the last batch before the budget is cut to fit it (+ <= 8 queries)
+                    per_query = self.unguided_comparisons / ptr
+                    n = int(min(bs, max(8, np.ceil((budget - self.unguided_comparisons) / max(per_query, 1.0)))))
+                batch = order[ptr: ptr + n]
                 ptr += len(batch)
                 t0 = time.perf_counter()
                 acc = self.unguided_batch(batch, search)
