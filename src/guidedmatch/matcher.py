@@ -6,21 +6,40 @@ Modes (:class:`~guidedmatch.config.Mode`)
 ``epi``         classic epipolar-guided matching: after the first models, candidates = epipolar band only.
 ``so``          spatial order only: candidates = admissible image-2 x-range (§III-C).
 ``so+epi``      x-range ∩ band (§III-C + §III-D).
-``so+epi+ia``   the same in coordinates aligned by the homography from F (§III-E, approach (c) by default).
+``so+epi+ia``   the same in coordinates aligned by the homography from F (§III-E; the in-plane twist ``c_inplane`` by
+                default, validated, see step 3).
+
+Either side of :func:`match` may be a :class:`~guidedmatch.prepared.PreparedImage` (per-image state reused across
+pairs: kernel-form descriptors, the approximate index of the unguided start); the matches are the same as with plain
+:class:`~guidedmatch.features.Features`. With ``auto_bf`` (default) a guided mode is replaced by brute force where
+guidance cannot win (fewer than ``bf_below_float`` / ``bf_below_binary`` features; said in ``stats.details``).
+Every result carries the two-view verdict ``result.geometry`` (:class:`~guidedmatch.geometry.TwoViewGeometry`:
+``verified`` F or H / ``no-overlap`` / ``too-few-matches``, inlier mask over ``result.pairs``).
 
 Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per step, in this order)
 -------------------------------------------------------------------------------------------------
 1. **Draw order** (§III-A, "Feature Grouping", :func:`draw_order`): image-1 features are put into ``num_groups``
    x-intervals and drawn round-robin (within a group strongest response first, else a seeded random order), so the
    first matches cover the whole image width.
-2. **Unguided phase** (§III-A): drawn features are matched in mini-batches of ``batch_size`` against all of image 2
-   (:class:`~guidedmatch.bruteforce.DenseKnn2`: GEMM in one single-threaded BLAS chunk per core, or popcount).
-3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): after every ``update_every`` (200) newly accepted
-   correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 times): F by robust
-   RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E), then the spatial-order model on aligned
-   x-coordinates (§III-B, §III-C). Batches are processed whole, so an update happens after the batch in which the
-   200th correspondence was accepted (the overshoot is < ``batch_size`` queries).
-4. **Guided phase**: between updates, batches are matched in their search regions under the current models.
+2. **Unguided start** (§III-A; the gate and the exit are beyond the paper, issue 11, :meth:`_GuidedRun.unguided_start`):
+   drawn features are matched in mini-batches against all of image 2 -- through the faiss IVF index of image 2
+   (:class:`~guidedmatch.prepared.UnguidedSearch`, ~2 sqrt(N2) + 4 cells per query), or exactly (GEMM / popcount;
+   binary descriptors, small images, ``unguided_index=False``). These correspondences are the *evidence*: no model
+   selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
+   :func:`~guidedmatch.geometry.two_view_geometry` decides whether they share a geometry beyond chance; the first
+   model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
+   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index)
+   without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are
+   not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after
+   ``update_every`` exact unguided correspondences, no gate, no exit.
+3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit, then after every ``update_every`` (200)
+   newly accepted correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 fits
+   in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E; validated over the
+   keypoints by :func:`~guidedmatch.alignment.safe_alignment` -- local scale, orientation, line at infinity -- with
+   the fallback requested approach -> ``c_inplane`` -> none, each rejection reported), then the spatial-order model
+   on aligned x-coordinates (§III-B, §III-C).
+4. **Guided phase**: between updates, batches are matched in their search regions under the current models; the
+   batch size follows the observed acceptance rate so the next update comes after about one batch.
 5. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized call of the
    Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the :class:`~guidedmatch.kernels.StripIndex`
    of the aligned image-2 points): features outside the overlap window ω* are dropped unmatched; each remaining
@@ -30,7 +49,9 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    final x-range and band and dropped when outside (the fix the paper suggests in §IV-C).
 7. **One-to-one** (beyond the paper, :func:`one_to_one`) and the optional **mutual check** (:func:`mutual_check`).
 8. **Result**: matches sorted by image-1 index, per-match flags (incl. the spatial-order probability within the final
-   match set, Talker Eq. 12) and a typed :class:`~guidedmatch.results.MatchStats`.
+   match set, Talker Eq. 12), a typed :class:`~guidedmatch.results.MatchStats` (``details``: ``unguided_search``,
+   ``verdict_checks``, ``early_exit``, ``unguided_comparisons``) and the verdict decided on the unguided evidence,
+   reported over the final matches (:func:`~guidedmatch.geometry.report_geometry`: inliers of the final F).
 
 Coordinates: the band is applied in the aligned frame, with ``F_a = H2^-T F H1^-1`` and the line normalized there
 ("the subsequent feature filtering is also performed according to the transformed coordinates", §III-E);
