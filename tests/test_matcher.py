@@ -275,6 +275,14 @@ def test_unrelated_scenes_are_no_overlap_with_early_exit(scene_and_features, oth
         assert "early_exit" in whats and r.stats.details["early_exit"]
         assert r.stats.comparison_ratio <= 0.03  # the exit comes at the budget (2.5 % of N1*N2 with the index)
         assert sum(r.stats.phase_queries) < len(f1)
+        # unverified="drop" (default): no matches are vouched for; "keep": the unguided ones are returned
+        assert len(r) == 0 and r.stats.details["dropped_unverified"] > 0
+        assert any(f.what == "unverified" for f in r.stats.fallbacks)
+        k = match(f1, g2, mode, GUIDED.replace(unverified="keep"))
+        assert len(k) == r.stats.details["dropped_unverified"] and k.geometry.verdict == "no-overlap"
+        assert k.geometry.inliers.shape == (len(k),) and not k.geometry.inliers.any()
+    else:
+        assert len(r) > 0  # the baseline keeps its nearest neighbours (with the verdict)
 
 
 def test_pure_rotation_scene_is_H():

@@ -118,6 +118,9 @@ class MatcherConfig:
                                          # index of image 2, 0.25 with exact search
     unguided_index: bool = True          # unguided start (start="verified") searches a faiss IVF index of image 2
                                          # (guidedmatch.prepared; built once per image) instead of exact GEMM
+    unverified: Literal["drop", "keep"] = "drop"  # guided modes, verdict not "verified" (no-overlap / too few): return
+                                         # no matches (counted in stats.details["dropped_unverified"]) or keep the
+                                         # unguided ones; mode "bf" always keeps its matches (the baseline)
     auto_bf: bool = True                 # guided modes: brute force when guidance cannot win (sqrt(N1*N2) below
                                          # bf_below_float / bf_below_binary); same result type, said in stats.details
     bf_below_float: int = 2000           # float descriptors: BF below this geometric-mean feature count (measured)
@@ -155,6 +158,7 @@ class MatcherConfig:
         check_number(o, "verdict_iters", self.verdict_iters, lo=1, integer=True)
         check_number(o, "max_unguided", self.max_unguided, lo=0, lo_open=True, hi=1, allow_none=True)
         check_bool(o, "unguided_index", self.unguided_index)
+        check_choice(o, "unverified", self.unverified, ("drop", "keep"))
         check_bool(o, "auto_bf", self.auto_bf)
         check_number(o, "bf_below_float", self.bf_below_float, lo=0, integer=True)
         check_number(o, "bf_below_binary", self.bf_below_binary, lo=0, integer=True)
@@ -163,9 +167,10 @@ class MatcherConfig:
     def paper(cls, **overrides) -> "MatcherConfig":
         """The paper's configuration: no re-check, no one-to-one filter, features outside ω* dropped (§III-B.2), the
         printed alignment (c), the first model after ``update_every`` unguided correspondences (exact search, no
-        verdict gate, no early exit), no automatic brute force. The two-view verdict is still reported."""
+        verdict gate, no early exit), no automatic brute force, matches kept whatever the verdict. The two-view
+        verdict is still reported."""
         return cls(**{"recheck": False, "outside_window": "drop", "one_to_one": False, "alignment": "c",
-                      "start": "paper", "auto_bf": False, **overrides})
+                      "start": "paper", "auto_bf": False, "unverified": "keep", **overrides})
 
     def replace(self, **changes) -> "MatcherConfig":
         """A copy with ``changes`` (validated; unknown names listed)."""

@@ -182,12 +182,18 @@ def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary, mode: Mode, auto_reason:
                                  f2.image_size, VerdictConfig(seed=c.seed))
     n1, n2 = len(d1), len(d2)
     details = dict(res.stats.details, verdict_s=time.perf_counter() - t1)
-    if auto_reason:
+    flags = default_flags(len(pairs))
+    fallbacks = []
+    if auto_reason:  # a guided mode answered by brute force: the guided modes' rule for unverified pairs applies
         details.update(requested_mode=mode.name, auto_bf=auto_reason)
+        q, j, dist, flags, geometry, n_drop = _drop_unverified(
+            c, pairs[:, 0], pairs[:, 1], dist, flags, geometry, lambda w, r: fallbacks.append(Fallback(w, r)))
+        pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
+        details["dropped_unverified"] = n_drop
     stats = dataclasses.replace(res.stats, time_s=time.perf_counter() - t0, dropped_by_one_to_one=dropped,
                                 phase_queries=(n1,), phase_comparisons=(n1 * n2,), queries_matched_against=n1,
-                                config=c, details=details)
-    return MatchResult(pairs, dist, stats, default_flags(len(pairs)), geometry)
+                                config=c, details=details, fallbacks=tuple(res.stats.fallbacks) + tuple(fallbacks))
+    return MatchResult(pairs, dist, stats, flags, geometry)
 
 
 # ================================================================================================ §III-A draw order
@@ -871,6 +877,8 @@ class _GuidedRun:
         final_F = models.F if models is not None and models.F is not None else None
         geometry = report_geometry(self.decision, x1, x2, F=final_F, config=VerdictConfig(seed=self.c.seed))
         self.timing["verdict_s"] += time.perf_counter() - t0
+        q, j, d, flags, geometry, dropped_unverified = _drop_unverified(self.c, q, j, d, flags, geometry,
+                                                                        self.fallback)
         n1, n2 = len(self.d1), len(self.d2)
         nphase = len(self.updates) + 1
         phase_comparisons = tuple(self.phase_comparisons.get(k, 0) for k in range(nphase))
@@ -888,9 +896,22 @@ class _GuidedRun:
             phase_queries=tuple(self.phase_queries.get(k, 0) for k in range(nphase)),
             phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c,
             details=dict(unguided_search=self.unguided_search, verdict_checks=tuple(self.checks),
-                         early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons)))
+                         early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons),
+                         dropped_unverified=dropped_unverified))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         return MatchResult(pairs, d, stats, flags, geometry)
+
+
+def _drop_unverified(c: MatcherConfig, q, j, d, flags: dict, geometry, report):
+    """``unverified="drop"``: a guided match whose verdict is not "verified" returns no matches (reported through
+    ``report(what, reason)``); returns ``(q, j, d, flags, geometry, number dropped)``."""
+    if geometry or c.unverified != "drop" or len(q) == 0:
+        return q, j, d, flags, geometry, 0
+    n = len(q)
+    report("unverified", f"verdict {geometry.verdict!r} ({geometry.reason}): the {n} matches are not returned "
+                         "(unverified='drop')")
+    keep = np.zeros(n, bool)
+    return q[keep], j[keep], d[keep], {k: v[keep] for k, v in flags.items()}, geometry.with_inliers(keep[:0]), n
 
 
 def _argsort_f32(key: np.ndarray) -> np.ndarray:
