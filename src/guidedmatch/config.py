@@ -111,11 +111,15 @@ class MatcherConfig:
                                          # "paper": first model after update_every correspondences, whatever they are
     first_check: int = 32                # unguided correspondences before the first verdict check (start="verified")
     check_growth: float = 1.5            # the next check waits until the evidence has grown by this factor
+    guide_margin: float = 1.5            # the first model guides only when the verified model's inliers reach this
+                                         # multiple of max(random-inlier bound, 15); a weaker verified pair is matched
+                                         # unguided within max_unguided (0001-0007 at 8192: a weak F guided 234 wrong
+                                         # matches into its band, BF+ratio returns 163)
     verdict_iters: int = 1000            # RANSAC iterations of each verdict check (8192 SIFT, 28 + 5 pairs: same verdicts
                                          # as 10000 on every unrelated and every pair verified at 10000 but 0000-0005/7)
     max_unguided: float | None = None    # early "no-overlap" exit: stop when the unguided start has spent this fraction of
                                          # N1*N2 comparisons without verified evidence; None: 0.025 with the approximate
-                                         # index of image 2, 0.25 with exact search
+                                         # index of image 2, 0.5 with exact search (binary descriptors: no index)
     unguided_index: bool = True          # unguided start (start="verified") searches a faiss IVF index of image 2
                                          # (guidedmatch.prepared; built once per image) instead of exact GEMM
     unverified: Literal["drop", "keep"] = "drop"  # guided modes, verdict not "verified" (no-overlap / too few): return
@@ -124,7 +128,7 @@ class MatcherConfig:
     auto_bf: bool = True                 # guided modes: brute force when guidance cannot win (sqrt(N1*N2) below
                                          # bf_below_float / bf_below_binary); same result type, said in stats.details
     bf_below_float: int = 2000           # float descriptors: BF below this geometric-mean feature count (measured)
-    bf_below_binary: int = 20000         # binary descriptors: BF below this (popcount BF is cheap; measured ORB crossover)
+    bf_below_binary: int = 12000         # binary descriptors: BF below this (popcount BF is cheap; ORB/AKAZE crossover)
 
     def __post_init__(self) -> None:
         from .alignment import APPROACHES
@@ -156,6 +160,7 @@ class MatcherConfig:
         check_number(o, "first_check", self.first_check, lo=8, integer=True)
         check_number(o, "check_growth", self.check_growth, lo=1, lo_open=True, hi=16)
         check_number(o, "verdict_iters", self.verdict_iters, lo=1, integer=True)
+        check_number(o, "guide_margin", self.guide_margin, lo=1, hi=100)
         check_number(o, "max_unguided", self.max_unguided, lo=0, lo_open=True, hi=1, allow_none=True)
         check_bool(o, "unguided_index", self.unguided_index)
         check_choice(o, "unverified", self.unverified, ("drop", "keep"))

@@ -73,6 +73,7 @@ class VerdictConfig:
                                    # real keypoints reaches ~4x the area-based rate (calibrated, module doc)
     h_ratio: float = 0.8           # model H when H inliers >= h_ratio * F inliers (COLMAP max_H_inlier_ratio)
     max_iters: int = 10000         # RANSAC iterations for F and H
+    method: str = "magsac"         # F estimator (epipolar.USAC_METHODS); "prosac" expects x1, x2 sorted best first
     seed: int = 0                  # RANSAC seed
 
     def __post_init__(self) -> None:
@@ -80,6 +81,10 @@ class VerdictConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"VerdictConfig.{name} must be a finite number > 0, got {v!r}")
+        from .epipolar import USAC_METHODS
+
+        if self.method not in USAC_METHODS:
+            raise ValueError(f"VerdictConfig.method must be one of {sorted(USAC_METHODS)}, got {self.method!r}")
         for name in ("min_inliers", "max_iters", "seed"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
@@ -200,14 +205,14 @@ def transfer_error(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return e
 
 
-def _fit_homography(x1, x2, threshold, max_iters, seed):
+def _fit_homography(x1, x2, threshold, max_iters, seed, prosac: bool = False):
     if len(x1) < 4:
         return None
     params = cv2.UsacParams()
     params.threshold = float(threshold)
     params.confidence = 0.999
     params.maxIterations = int(max_iters)
-    params.sampler = cv2.SAMPLING_UNIFORM
+    params.sampler = cv2.SAMPLING_PROSAC if prosac else cv2.SAMPLING_UNIFORM
     params.score = cv2.SCORE_METHOD_MAGSAC
     params.loMethod = cv2.LOCAL_OPTIM_SIGMA
     params.loSampleSize = 10
@@ -293,14 +298,15 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
     a, b = x1[finite], x2[finite]
     F = None
     nf = 0
-    fr = estimate_fundamental(a, b, threshold=c.threshold_px / 2.0, max_iters=c.max_iters, seed=c.seed)
+    fr = estimate_fundamental(a, b, method=c.method, threshold=c.threshold_px / 2.0, max_iters=c.max_iters,
+                              seed=c.seed)
     if fr:
         F = fr.F
         with np.errstate(invalid="ignore"):
             inl_f = sampson_distance(F, a, b) <= c.threshold_px
         nf = _independent_inliers(a, b, inl_f, F, c.threshold_px, size1, size2)
         ev["F_inliers_raw"] = int(inl_f.sum())
-    H = _fit_homography(a, b, c.threshold_px, c.max_iters, c.seed)
+    H = _fit_homography(a, b, c.threshold_px, c.max_iters, c.seed, prosac=c.method == "prosac")
     nh = 0
     if H is not None:
         inl_h = transfer_error(H, a, b) <= c.threshold_px

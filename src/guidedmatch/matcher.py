@@ -147,10 +147,13 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
 def _bf_wins(c: MatcherConfig, n1: int, n2: int, binary: bool) -> str | None:
     """Why brute force replaces a guided mode (``auto_bf``), or None.
 
-    Guidance has a fixed cost (three robust fits, the spatial-order model, the verdict) that brute force does not
-    pay; below a size it cannot win. Measured on Herz-Jesus-P8 pairs (2 cores, loaded machine, one run each,
-    ``/tmp/pairs/bintime.py``, ``bin40.py``): ORB guided/BF time 8.1-11.8x at 1-2k features, 1.0-4.0x at 7k,
-    1.5/0.96x at 10k/20k, 0.12/0.48x at 40k; AKAZE and BRISK 0.9-10x up to 7k; SIFT 0.6-1.8x at 1-4k.
+    Guidance has a fixed cost (three robust fits, the spatial-order model, the verdict checks) that brute force does
+    not pay; below a size it cannot win. Measured (CPU time, best of 3, Herz-Jesus-P8 pairs 0002-0003 / 0002-0005 /
+    0000-0005, guided with ``auto_bf=False``; ``/tmp/pairs/bintime2.py`` of the pairs helper), guided / BF:
+    SIFT 0.99 / 0.63 / 0.25 at 2000 features, 0.72 / 0.61 / 0.50 at 4000, <= 0.41 from 8000 on;
+    ORB 1.85 / 2.94 at 2000, 1.37 / 1.91 at 4000, 0.76 / 1.31 at 8000, 0.51 / 0.73 at 12000, 0.30 / 0.45 at 16000;
+    AKAZE 2.4-2.7 at 2000, 1.1-1.2 at 4000, 0.57-1.04 at 8000, 0.28 / 0.37 at 12000; BRISK 2.0-2.9 at 2000, 1.4-2.1
+    at 4000 (it has < 8000 features here). Hence BF below 2000 float and 12000 binary features.
     """
     if not c.auto_bf:
         return None
@@ -521,7 +524,7 @@ class _GuidedRun:
             self.p2.index()
             self.timing["index_build_s"] += time.perf_counter() - t0
         self.unguided_search = kind
-        frac = c.max_unguided if c.max_unguided is not None else (0.025 if kind == "ivf" else 0.25)
+        frac = c.max_unguided if c.max_unguided is not None else (0.025 if kind == "ivf" else 0.5)
         budget = frac * n1 * n2
         bs = c.batch_size if kind != "ivf" else max(c.batch_size, 256)  # an index search has no GEMM to fill
         models = None
@@ -549,15 +552,20 @@ class _GuidedRun:
                     continue
                 if total >= next_check:
                     checked_at = total
-                    if self.decide(got):
-                        # the verdict's F was fitted robustly on exactly this evidence: the first model reuses it
-                        models = self.fit_models(*got.pairs_so_far(), F_hint=self.decision.F)
+                    g = self.decide(got)
+                    if g and not self.strong(g) and self.c.verdict_iters < 10000:
+                        g = self.decide(got, 10000)  # weak at the quick check: the full-strength fit decides
+                    if self.strong(g):
+                        # the first model is fitted anew (ransac_method, 10000 iterations): the verdict's quick F is only a
+                        # gate (reusing a quick PROSAC F lost 20-70 % of the true matches on 0000-0003 / 0002-0006)
+                        models = self.fit_models(*got.pairs_so_far())
                         break
                     next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
                 if self.unguided_comparisons >= budget and ptr < len(order):
                     self.early_exit = (f"unguided start spent {self.unguided_comparisons / max(n1 * n2, 1):.1%} of "
-                                       f"N1*N2 ({frac:.1%} allowed) on {ptr} of {n1} features without verified "
-                                       f"evidence; the remaining {len(order) - ptr} features are not matched")
+                                       f"N1*N2 ({frac:.1%} allowed) on {ptr} of {n1} features without evidence "
+                                       f"strong enough to guide; the remaining {len(order) - ptr} features are not "
+                                       "matched")
                     break
         if models is None:
             if checked_at != total or self.decision is None:
@@ -567,22 +575,38 @@ class _GuidedRun:
                               f"{n1} features (need {c.update_every} per update)")
                 return None, ptr
             what = "early_exit" if self.early_exit else "no_model"
-            why = self.early_exit or (f"the unguided correspondences were never verified (last verdict "
-                                      f"{self.decision.verdict!r}); every feature matched against all of image 2")
+            weak = " (verified, but below guide_margin: no model guided)" if self.decision else ""
+            why = self.early_exit or (f"the unguided correspondences were never verified strongly enough to guide "
+                                      f"(last verdict {self.decision.verdict!r}{weak}); every feature matched "
+                                      "against all of image 2")
             self.fallback(what, why + f"; {self.decision.reason}")
         return models, ptr
 
-    def decide(self, got: _Collected):
-        """The two-view verdict on the unguided correspondences so far (phase 0: no model selected them)."""
+    def strong(self, g) -> bool:
+        """A verified verdict strong enough to guide: the model's inliers reach ``guide_margin`` times
+        ``max(random-inlier bound, min_inliers)`` (a weak one is reported, not followed)."""
+        if not g:
+            return False
+        e = g.evidence
+        n, bound = (e["H_inliers"], e["random_bound_H"]) if g.model == "H" else (e["F_inliers"], e["random_bound_F"])
+        return n >= self.c.guide_margin * max(bound, 15.0)
+
+    def decide(self, got: _Collected, max_iters: int | None = None):
+        """The two-view verdict on the unguided correspondences so far (phase 0: no model selected them), with
+        ``verdict_iters`` RANSAC iterations (or ``max_iters``)."""
         from .geometry import VerdictConfig, two_view_geometry
 
         t0 = time.perf_counter()
         q = np.concatenate([a.q for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
         j = np.concatenate([a.j for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
+        # uniform MAGSAC++ (the calibrated rule). PROSAC on ratio-sorted evidence finds weak models in fewer
+        # iterations (AKAZE 0000-0005 at 12k) but also "verified" a false F on 0001-0007 at 8192 (45 of 247 inliers
+        # correct under the GT cameras), so it is not used for the decision.
         g = two_view_geometry(self.f1.keypoints[q], self.f2.keypoints[j], self.f1.image_size, self.f2.image_size,
-                              VerdictConfig(seed=self.c.seed, max_iters=self.c.verdict_iters))
+                              VerdictConfig(seed=self.c.seed, max_iters=max_iters or self.c.verdict_iters))
         self.decision = g
-        self.checks.append(dict(evidence=int(len(q)), verdict=g.verdict, model=g.model,
+        self.checks.append(dict(evidence=int(len(q)), verdict=g.verdict, model=g.model, strong=self.strong(g),
+                                iterations=int(max_iters or self.c.verdict_iters),
                                 F_inliers=g.evidence.get("F_inliers"), H_inliers=g.evidence.get("H_inliers"),
                                 bound_F=round(float(g.evidence.get("random_bound_F", 0.0)), 1),
                                 comparisons=int(self.unguided_comparisons)))
@@ -629,7 +653,7 @@ class _GuidedRun:
         return _Accepted(queries[keep], i1[keep], dist1[keep].astype(np.float32), single[keep])
 
     # ------------------------------------------------------------------------------------------ step 3: models
-    def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray, F_hint: np.ndarray | None = None) -> GuidanceModels:
+    def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray) -> GuidanceModels:
         """Step 3 (§III-B..E): refit F, the alignment and the spatial-order model on all correspondences so far."""
         t0 = time.perf_counter()
         k1, k2 = self.f1.keypoints, self.f2.keypoints
@@ -638,7 +662,7 @@ class _GuidedRun:
         F = inl = None
         H1, H2 = np.eye(3), np.eye(3)
         if self.mode.use_epi or self.mode.use_ia:
-            F, inl = self.fit_fundamental(p1, p2, info, F_hint)
+            F, inl = self.fit_fundamental(p1, p2, info)
         if self.mode.use_ia and F is not None:
             H1, H2 = self.fit_alignment(F, p1[inl], p2[inl], info)
         H1, H2, pts1a, pts2a = self.aligned_points(H1, H2)
@@ -657,19 +681,11 @@ class _GuidedRun:
         return GuidanceModels(F, F_aligned, x1_range, H1, H2, so, pts1a, pts2a, float(self.c.band_px),
                               self.c.outside_window)
 
-    def fit_fundamental(self, p1, p2, info: dict, F_hint: np.ndarray | None = None):
-        """§III-D: F by OpenCV USAC (``ransac_method``); returns ``(F, inlier mask)`` or ``(None, None)`` (reported).
-        ``F_hint``: an F already fitted robustly on these correspondences (the verdict's): reused when at least 8 of
-        them lie within ``ransac_threshold`` (Sampson) of it."""
+    def fit_fundamental(self, p1, p2, info: dict):
+        """§III-D: F by OpenCV USAC (``ransac_method``); returns ``(F, inlier mask)`` or ``(None, None)`` (reported)."""
         from . import epipolar
 
         c = self.c
-        if F_hint is not None and np.all(np.isfinite(F_hint)):
-            with np.errstate(invalid="ignore", divide="ignore"):
-                inl = epipolar.sampson_distance(F_hint, p1, p2) <= c.ransac_threshold
-            if inl.sum() >= epipolar.MIN_POINTS:
-                info["F_inliers"] = int(inl.sum())
-                return np.asarray(F_hint, np.float64), inl
         fr = epipolar.estimate_fundamental(p1, p2, method=c.ransac_method, threshold=c.ransac_threshold, seed=c.seed)
         if not fr:
             self.fallback("fundamental", f"F estimation failed: {fr.reason}; "
