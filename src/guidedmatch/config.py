@@ -122,9 +122,9 @@ class MatcherConfig:
                                          # index of image 2, 0.5 with exact search (binary descriptors: no index)
     unguided_index: bool = True          # unguided start (start="verified") searches a faiss IVF index of image 2
                                          # (guidedmatch.prepared; built once per image) instead of exact GEMM
-    unverified: Literal["drop", "keep"] = "drop"  # guided modes, verdict not "verified" (no-overlap / too few): return
-                                         # no matches (counted in stats.details["dropped_unverified"]) or keep the
-                                         # unguided ones; mode "bf" always keeps its matches (the baseline)
+    unverified: Literal["drop", "keep"] = "drop"  # guided modes, verdict "no-overlap": return no matches (counted in
+                                         # stats.details["dropped_unverified"]) or keep the unguided ones; mode "bf"
+                                         # always keeps its matches (the baseline)
     auto_bf: bool = True                 # guided modes: brute force when guidance cannot win (sqrt(N1*N2) below
                                          # bf_below_float / bf_below_binary); same result type, said in stats.details
     bf_below_float: int = 2000           # float descriptors: BF below this geometric-mean feature count (measured)

@@ -3,7 +3,11 @@ and the guided candidate kernel of the progressive matcher.
 
 All kernels return, per query, the best and second-best candidate (index and distance) and count the
 exact number of descriptor distances they evaluated (the paper's "# matches" column, Teng & Dong §IV-A).
-Distances are L2 (Euclidean, not squared) for float descriptors and Hamming bit counts for binary ones.
+Distances returned by these kernels are **squared** L2 for float32 and byte-valued (uint8) descriptors
+(``top2_gemm``: ``max(|q|^2 + |t|^2 - 2 q.t, 0)`` in float32; ``guided_top2``: the sum of squared differences,
+exact integers for byte-valued rows) and Hamming bit counts for binary ones (uint64 words; not squared), all as
+float32. The callers take the square root for float descriptors: ``bruteforce.knn2`` and the matcher report L2
+(Euclidean, not squared), so ``MatchResult.distances`` are L2 or Hamming bits.
 Index ``-1`` and distance ``+inf`` mean "no such candidate".
 """
 from __future__ import annotations
@@ -94,7 +98,8 @@ def _to_uint8_exact(d, out):
 
 
 def desc_dist(a, b):  # pragma: no cover - replaced by the Numba overload below inside jitted code
-    """Descriptor distance: squared L2 for float or byte-valued rows, Hamming for uint64 word rows."""
+    """Descriptor distance: squared L2 (float32) for float or byte-valued rows, Hamming bits for uint64 word
+    rows."""
     raise NotImplementedError
 
 
@@ -129,7 +134,8 @@ def _top2_gemm_py(dot, nn2, qn, write_back):
     ``max((dot * -2 + nn2) + qn, 0)`` is formed element by element in float32 with exactly that rounding order
     (no fast-math, so no contraction), i.e. bit-identical to the NumPy expression, but in one pass over the
     block instead of four. With ``write_back`` the distances are also stored into ``dot`` (for column minima).
-    Returns ``(i1, d1, i2, d2)`` (squared distances); ties keep the lowest column index (like ``np.argmin``).
+    Returns ``(i1, d1, i2, d2)``: ``(R,) int64`` column indices and ``(R,) float32`` **squared** L2 distances (the
+    caller takes the square root); ties keep the lowest column index (like ``np.argmin``).
     """
     r, c = dot.shape
     i1 = np.full(r, -1, np.int64)
@@ -159,7 +165,8 @@ def _top2_gemm_py(dot, nn2, qn, write_back):
 
 @njit(parallel=True, cache=True)
 def hamming_top2(q, t):
-    """Brute-force Hamming top-2 of every query word row ``q (N1, W) uint64`` among ``t (N2, W)``."""
+    """Brute-force Hamming top-2 of every query word row ``q (N1, W) uint64`` among ``t (N2, W)``: ``(i1, d1, i2,
+    d2)``, distances in bits as float32 (not squared)."""
     n1 = q.shape[0]
     n2 = t.shape[0]
     i1 = np.full(n1, -1, np.int64)
@@ -182,7 +189,8 @@ def hamming_top2(q, t):
 
 @njit(parallel=True, cache=True)
 def hamming_col_best(q, t):
-    """For every target row of ``t``: index of and distance to its nearest query row (mutual check)."""
+    """For every target row of ``t``: index of and Hamming distance (bits, float32) to its nearest query row
+    (mutual check)."""
     n2 = t.shape[0]
     n1 = q.shape[0]
     best = np.full(n2, -1, np.int64)

@@ -428,8 +428,10 @@ def run_benchmarks(which: str, *, data=None, out="reports", quick: bool = False,
         raise ConfigError(f"unknown detector {detector!r}; choose one of {', '.join(DETECTORS)}")
     parts = ("oxford", "synthetic", "real", "alignment") if which == "all" else (which,)
     root = data_root(data)
-    if root is None and any(w != "alignment" for w in parts):
-        raise InputError("no evaluation data: pass --data DIR or set GUIDEDMATCH_DATA (expects oxford/, pose_pairs/, photos/)")
+    if (root is None or not root.is_dir()) and any(w != "alignment" for w in parts):
+        where = "" if root is None else f" ({root} is not a folder)"
+        raise InputError(f"no evaluation data{where}: pass --data DIR or set GUIDEDMATCH_DATA "
+                         "(expects oxford/, pose_pairs/, photos/)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -19,7 +19,7 @@ RANSAC-F choice (the paper only says "RANSAC with epipolar geometry"): F is fitt
 :func:`guidedmatch.epipolar.estimate_fundamental` -- ``method="prosac"`` (OpenCV USAC, PROSAC sampling with
 the matches ordered by ascending descriptor distance, MSAC score, local optimisation), estimation threshold
 1.0 px, confidence 0.999, at most 100 000 iterations, ``seed=0`` (deterministic). Inliers are then counted
-with the symmetric point-to-epipolar-line distance (:func:`guidedmatch.datasets.symmetric_epipolar_distance`)
+with the symmetric point-to-epipolar-line distance (:func:`guidedmatch.epipolar.symmetric_epipolar_distance`)
 under the fitted F and **3 px**, the paper's correctness threshold, so on pairs with ground truth the
 RANSAC precision estimates the GT precision. Why (measured on Strecha Herz-Jesus pairs at 1536 px, SIFT,
 BFMatcher, GT precision vs this estimate): with ratio test 0.904/0.904, 0.809/0.808, 0.692/0.692,
@@ -40,7 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from ..datasets import DEFAULT_THRESHOLD, symmetric_epipolar_distance
+from ..datasets import DEFAULT_THRESHOLD
+from ..epipolar import symmetric_epipolar_distance
 from ..results import Failure, MatchResult
 
 RANSAC_THRESHOLD_PX = 1.0  # USAC inlier threshold used while fitting F, px
