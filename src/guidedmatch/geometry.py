@@ -255,7 +255,7 @@ def _independent_inliers(x1, x2, inl, F, threshold, size1, size2) -> int:
 
 
 def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None, *,
-                      report_on: tuple | None = None) -> TwoViewGeometry:
+                      report_on: tuple | None = None, F_prior: np.ndarray | None = None) -> TwoViewGeometry:
     """Decide whether correspondences ``x1 (M,2)`` <-> ``x2 (M,2)`` (pixels) share a verified geometry.
 
     Args:
@@ -264,6 +264,9 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
         config: :class:`VerdictConfig`.
         report_on: optional ``(y1, y2)`` other correspondences (e.g. a guided matcher's final matches) over which
             ``inliers`` is reported under the verified model; the decision is still taken on ``x1, x2``.
+        F_prior: optional ``(3,3)`` F from an earlier decision on part of this evidence: used instead of this
+            run's RANSAC F when it has more (independent) inliers. The random-inlier bound is unchanged: the prior
+            is one more hypothesis, it was itself the best of a RANSAC run on a subset.
 
     Returns:
         :class:`TwoViewGeometry`; never raises on degenerate input (too few, collinear, identical points).
@@ -306,6 +309,15 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
             inl_f = sampson_distance(F, a, b) <= c.threshold_px
         nf = _independent_inliers(a, b, inl_f, F, c.threshold_px, size1, size2)
         ev["F_inliers_raw"] = int(inl_f.sum())
+    if F_prior is not None and np.all(np.isfinite(F_prior)):
+        # a hypothesis carried over (the F of an earlier decision on a subset of this evidence): kept when it
+        # explains more of the evidence than this run's RANSAC found (a short RANSAC can miss a weak model)
+        with np.errstate(invalid="ignore"):
+            inl_p = sampson_distance(F_prior, a, b) <= c.threshold_px
+        n_p = _independent_inliers(a, b, inl_p, F_prior, c.threshold_px, size1, size2)
+        if n_p > nf:
+            F, nf = np.asarray(F_prior, np.float64), n_p
+            ev.update(F_inliers_raw=int(inl_p.sum()), F_from_prior=True)
     H = _fit_homography(a, b, c.threshold_px, c.max_iters, c.seed, prosac=c.method == "prosac")
     nh = 0
     if H is not None:

@@ -606,8 +606,10 @@ class _GuidedRun:
         # uniform MAGSAC++ (the calibrated rule). PROSAC on ratio-sorted evidence finds weak models in fewer
         # iterations (AKAZE 0000-0005 at 12k) but also "verified" a false F on 0001-0007 at 8192 (45 of 247 inliers
         # correct under the GT cameras), so it is not used for the decision.
+        prior = self.decision.F if self.decision is not None and self.decision.model == "F" else None
         g = two_view_geometry(self.f1.keypoints[q], self.f2.keypoints[j], self.f1.image_size, self.f2.image_size,
-                              VerdictConfig(seed=self.c.seed, max_iters=max_iters or self.c.verdict_iters))
+                              VerdictConfig(seed=self.c.seed, max_iters=max_iters or self.c.verdict_iters),
+                              F_prior=prior)
         self.decision = g
         self.checks.append(dict(evidence=int(len(q)), verdict=g.verdict, model=g.model, strong=self.strong(g),
                                 iterations=int(max_iters or self.c.verdict_iters),
