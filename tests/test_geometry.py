@@ -148,3 +148,21 @@ def test_report_geometry_keeps_the_decision():
     null = two_view_geometry(rng.uniform(0, 1, (100, 2)) * SIZE, rng.uniform(0, 1, (100, 2)) * SIZE, SIZE, SIZE)
     r = report_geometry(null, y1, y2)
     assert r.verdict == "no-overlap" and not r.inliers.any() and r.num_matches == 50
+
+
+def test_F_prior_is_kept_only_when_it_explains_more():
+    s = general_pair(5, n_points=300, noise=0.3)
+    rng = np.random.default_rng(5)
+    x1, x2 = s.x1n.copy(), s.x2n.copy()
+    bad = rng.random(len(x1)) < 0.6
+    x2[bad] = rng.uniform(0, 1, (bad.sum(), 2)) * SIZE
+    short = VerdictConfig(max_iters=1)  # one RANSAC sample: almost surely misses the model
+    g0 = two_view_geometry(x1, x2, SIZE, SIZE, short)
+    g = two_view_geometry(x1, x2, SIZE, SIZE, short, F_prior=s.F)
+    assert g.verdict == "verified" and g.evidence.get("F_from_prior") and np.array_equal(g.F, s.F)
+    assert g.evidence["F_inliers"] >= g0.evidence["F_inliers"] and g.inliers[~bad].mean() > 0.95
+    # a prior that explains nothing changes nothing
+    wrong = np.linalg.svd(rng.normal(size=(3, 3)))[0] @ np.diag([1.0, 0.5, 0.0])
+    h = two_view_geometry(x1, x2, SIZE, SIZE, VerdictConfig(), F_prior=wrong)
+    ref = two_view_geometry(x1, x2, SIZE, SIZE, VerdictConfig())
+    assert "F_from_prior" not in h.evidence and h.evidence["F_inliers"] == ref.evidence["F_inliers"]
