@@ -186,6 +186,8 @@ def cmd_match(args) -> int:
         raise OutputError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
     if args.keep_unverified and not args.output:
         raise ConfigError("--keep-unverified needs -o OUT")
+    if args.keep_unverified:  # the matcher then returns the matches of a no-overlap pair too (unverified="keep")
+        config = config.replace(unverified="keep")
     if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg"):
         raise OutputError(f"unknown plot format {Path(args.plot).suffix!r}: use .png, .pdf, .svg or .jpg")
     _check_input_image(args.img1, "IMG1")
