@@ -438,26 +438,22 @@ def database_pair_stats(database: str | os.PathLike) -> list[dict]:
     configuration name or None), ``inliers`` (inlier matches of a verified geometry, else 0), ``verified``."""
     import pycolmap
 
+    rows = []
     db = pycolmap.Database.open(str(database))
-    try:
+    try:   # counts in bulk; each geometry read alone (its inlier matches), so memory stays one pair's worth
         names = {img.image_id: img.name for img in db.read_all_images()}
-        raw: dict[int, int] = {}
-        ids, matches = db.read_all_matches()
-        for pid, m in zip(ids, matches):
-            raw[int(pid)] = int(len(m))
-        geo_ids, geos = db.read_two_view_geometries()
-        tvg = {int(pid): g for pid, g in zip(geo_ids, geos)}
+        raw = {int(pid): int(n) for pid, n in zip(*db.read_num_matches())}
+        geo = {int(pid): int(n) for pid, n in zip(*db.read_two_view_geometry_num_inliers())}
+        for pid in sorted(set(raw) | set(geo)):
+            i1, i2 = pycolmap.pair_id_to_image_pair(pid)
+            config = None
+            if pid in geo:
+                config = pycolmap.TwoViewGeometryConfiguration(int(db.read_two_view_geometry(i1, i2).config)).name
+            verified = config in VERIFIED_CONFIGS
+            rows.append({"name1": names.get(i1, str(i1)), "name2": names.get(i2, str(i2)), "matches": raw.get(pid, 0),
+                         "config": config, "inliers": geo[pid] if verified else 0, "verified": bool(verified)})
     finally:
         db.close()
-    rows = []
-    for pid in sorted(set(raw) | set(tvg)):
-        i1, i2 = pycolmap.pair_id_to_image_pair(pid)
-        g = tvg.get(pid)
-        config = pycolmap.TwoViewGeometryConfiguration(int(g.config)).name if g is not None else None
-        verified = config in VERIFIED_CONFIGS
-        rows.append({"name1": names.get(i1, str(i1)), "name2": names.get(i2, str(i2)), "matches": raw.get(pid, 0),
-                     "config": config, "inliers": int(len(g.inlier_matches)) if (g is not None and verified) else 0,
-                     "verified": bool(verified)})
     return rows
 
 
