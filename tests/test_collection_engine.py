@@ -1,0 +1,298 @@
+"""Collection engine (issue 12): scheduling, resume, retries, local cluster -- with in-memory test doubles.
+
+The doubles implement the FeatureSource / MatchSink interfaces of INTERFACES.md: a dict-backed source of synthetic
+multi-view features (3-D points seen by cameras with known poses, one view of unrelated points) and a list-backed
+sink. The CLI / COLMAP database tests (kill and resume, pycolmap mapping) are further down.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from guidedmatch.collection.engine import (CollectionConfig, _ImageCache, _TaskSpec, match_collection,
+                                           plan_tasks)
+from guidedmatch.errors import ConfigError, InputError
+from guidedmatch.features import Features
+from guidedmatch.geometry import VerdictConfig, two_view_geometry
+from guidedmatch.matcher import MatcherConfig, match
+from guidedmatch.testing.twoview import intrinsics_matrix, look_at_rotation, project
+
+SIZE = (800, 600)
+
+
+def make_views(n_views: int = 4, n_points: int = 1200, seed: int = 0) -> dict[str, Features]:
+    """``n_views`` cameras on an arc looking at a point cloud (overlapping), plus ``"other"``: unrelated points."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform([-2.5, -2.0, 6.0], [2.5, 2.0, 9.0], (n_points, 3))
+    desc = rng.integers(0, 120, (n_points, 128)).astype(np.float32)
+    K = intrinsics_matrix(700.0, SIZE)
+    out = {}
+    for v in range(n_views):
+        c = np.array([0.5 * (v - (n_views - 1) / 2), 0.1 * v, 0.0])
+        R = look_at_rotation(c, (0.0, 0.0, 7.5), roll=0.05 * v)
+        x, z = project(K, R, c, X)
+        ok = (z > 0) & (x[:, 0] >= 0) & (x[:, 0] < SIZE[0]) & (x[:, 1] >= 0) & (x[:, 1] < SIZE[1])
+        keep = np.flatnonzero(ok & (rng.random(n_points) < 0.85))
+        keep = keep[rng.permutation(len(keep))]
+        d = desc[keep] + rng.normal(0, 4.0, (len(keep), 128)).astype(np.float32)
+        out[f"view{v}.jpg"] = Features(x[keep] + rng.normal(0, 0.3, (len(keep), 2)), np.clip(d, 0, 255), SIZE)
+    n = 800
+    out["other.jpg"] = Features(rng.uniform(0, 1, (n, 2)) * SIZE, rng.integers(0, 120, (n, 128)).astype(np.float32),
+                                SIZE)
+    return out
+
+
+class DictSource:
+    """FeatureSource double: features in a dict (picklable); ``fail`` names raise on load, ``die`` names kill the
+    process loading them (a worker dying mid-task)."""
+
+    kind = "dict"
+
+    def __init__(self, feats: dict, fail=(), die=()):
+        self.feats, self.fail, self.die = feats, set(fail), set(die)
+        self.path = None
+        self.loads = 0
+
+    def names(self):
+        return list(self.feats)
+
+    def image_size(self, name):
+        return self.feats[name].image_size
+
+    def num_features(self, name):
+        return len(self.feats[name])
+
+    def load(self, name):
+        if name in self.die and os.environ.get("GM_TEST_IN_WORKER") == "1":
+            os._exit(17)
+        if name in self.fail:
+            raise OSError(f"cannot read the features of {name} (test double)")
+        self.loads += 1
+        return self.feats[name]
+
+    def close(self):
+        pass
+
+
+class ListSink:
+    """MatchSink double: every write in a dict keyed by the unordered pair (a second write of a pair is an error)."""
+
+    def __init__(self, done=()):
+        self.rows: dict[frozenset, tuple] = {}
+        self.order: list = []
+        self.preset = {frozenset(p) for p in done}
+
+    def done_pairs(self):
+        return set(self.preset) | set(self.rows)
+
+    def write(self, name1, name2, pairs, scores, geometry):
+        key = frozenset((name1, name2))
+        assert key not in self.rows, f"pair {key} written twice"
+        assert pairs.dtype == np.int64 and pairs.ndim == 2 and pairs.shape[1] == 2
+        assert scores.dtype == np.float32 and scores.shape == (len(pairs),)
+        assert geometry is not None and len(geometry.inliers) == len(pairs)
+        self.rows[key] = (name1, name2, pairs.copy(), scores.copy(), geometry)
+        self.order.append(key)
+
+    def close(self):
+        pass
+
+
+@pytest.fixture(scope="module")
+def views():
+    return make_views()
+
+
+def all_pairs(names):
+    return [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+
+
+def reference(feats, a, b, mode="so+epi+ia"):
+    """The slow, obviously-correct path: one direct matcher call and one verdict call per pair."""
+    f1, f2 = feats[a], feats[b]
+    res = match(f1, f2, mode, MatcherConfig())
+    g = getattr(res, "geometry", None)
+    if g is None:
+        g = two_view_geometry(f1.keypoints[res.pairs[:, 0]], f2.keypoints[res.pairs[:, 1]], f1.image_size,
+                              f2.image_size, VerdictConfig())
+    return res, g
+
+
+def assert_same_as_reference(sink, feats, pairs):
+    assert set(sink.rows) == {frozenset(p) for p in pairs}
+    for a, b in pairs:
+        n1, n2, got, scores, geom = sink.rows[frozenset((a, b))]
+        assert (n1, n2) == (a, b)
+        res, g = reference(feats, a, b)
+        np.testing.assert_array_equal(got, res.pairs)
+        np.testing.assert_array_equal(scores, res.distances)
+        assert geom.verdict == g.verdict and geom.num_inliers == g.num_inliers
+
+
+# ------------------------------------------------------------------------------------------------ in-process
+def test_in_process_matches_every_pair_like_the_direct_calls(views, tmp_path):
+    src, sink = DictSource(views), ListSink()
+    pairs = all_pairs(src.names())
+    log = tmp_path / "pairs.jsonl"
+    rep = match_collection(src, pairs, sink, CollectionConfig(progress=False, log_path=str(log), chunk_pairs=3))
+    assert rep.totals["backend"] == "in-process" and "auto" in rep.totals["backend_reason"]
+    assert rep.done == len(pairs) == 10 and rep.skipped == 0 and rep.failed == []
+    assert_same_as_reference(sink, views, pairs)
+    # overlapping views verified, the unrelated view never
+    for key, (a, b, _, _, geom) in sink.rows.items():
+        assert bool(geom) == ("other.jpg" not in key), (a, b, geom.reason)
+    assert rep.totals["verified_pairs"] == 6
+    assert rep.totals["inliers"] == sum(r[4].num_inliers for r in sink.rows.values() if r[4])
+    assert rep.totals["matches"] == sum(len(r[2]) for r in sink.rows.values())
+    # the cache holds the whole collection: every image loaded exactly once
+    assert src.loads == 5  # in-process: this very source object
+    assert rep.totals["image_loads"] == 5 and rep.totals["cache_hits"] == 2 * len(pairs) - 5
+    lines = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [ln["event"] for ln in lines] == ["pair"] * 10 + ["summary"]
+    assert {frozenset(ln["pair"]) for ln in lines[:-1]} == {frozenset(p) for p in pairs}
+    assert all(ln["status"] == "done" and ln["geometry_source"] in ("matcher", "engine") for ln in lines[:-1])
+    assert lines[-1]["done"] == 10 and lines[-1]["failed"] == []
+    assert "10 matched" in rep.summary()
+
+
+def test_cache_bound_evicts_and_keeps_the_pair_being_matched(views):
+    names = list(views)
+    one = views[names[0]].keypoints.nbytes + views[names[0]].descriptors.nbytes
+    spec = _TaskSpec("t", "so+epi+ia", MatcherConfig(), VerdictConfig(), cache_bytes=int(2.5 * one),
+                     single_thread=False)
+    cache = _ImageCache(DictSource(views), spec)
+    for a, b in all_pairs(names):
+        cache.get(a, (a, b))
+        cache.get(b, (a, b))
+        assert a in cache.items and b in cache.items
+        assert len(cache.items) <= 3 and cache.bytes == sum(i.nbytes for i in cache.items.values())
+    # a bound smaller than one image still keeps the two pinned images
+    tiny = _ImageCache(DictSource(views), spec.__class__(**{**spec.__dict__, "cache_bytes": 0}))
+    tiny.get(names[0], (names[0], names[1]))
+    tiny.get(names[1], (names[0], names[1]))
+    assert list(tiny.items) == [names[0], names[1]]
+    tiny.get(names[2], (names[2], names[3]))
+    assert list(tiny.items) == [names[2]]
+
+
+def test_small_cache_same_matches_more_loads(views):
+    src, sink = DictSource(views), ListSink()
+    pairs = all_pairs(src.names())
+    rep = match_collection(src, pairs, sink, dict(progress=False, cache_mb=0.0, chunk_pairs=2))
+    assert rep.done == 10
+    assert rep.totals["image_loads"] > 5
+    assert_same_as_reference(sink, views, pairs)
+
+
+def test_resume_skips_done_pairs_and_rerun_does_nothing(views):
+    names = list(views)
+    pairs = all_pairs(names)
+    src = DictSource(views)
+    sink = ListSink(done=pairs[:4])
+    rep = match_collection(src, pairs, sink, dict(progress=False, workers=0))
+    assert rep.skipped == 4 and rep.done == 6
+    assert set(sink.rows) == {frozenset(p) for p in pairs[4:]}
+    again = match_collection(src, pairs, sink, dict(progress=False))
+    assert again.done == 0 and again.skipped == 10 and again.totals["backend"] == "none"
+    assert again.totals["image_loads"] == 0
+
+
+def test_failed_pair_is_retried_then_reported_never_missing(views, tmp_path):
+    src = DictSource(views, fail={"view3.jpg"})
+    sink = ListSink()
+    pairs = all_pairs(src.names())
+    log = tmp_path / "log.jsonl"
+    rep = match_collection(src, pairs, sink, dict(progress=False, workers=0, retries=2, log_path=str(log)))
+    bad = [p for p in pairs if "view3.jpg" in p]
+    assert rep.done == len(pairs) - len(bad) and len(rep.failed) == len(bad) == 4
+    assert {frozenset(p) for p, _ in rep.failed} == {frozenset(p) for p in bad}
+    assert all("OSError" in r and "view3.jpg" in r for _, r in rep.failed)
+    assert set(sink.rows) == {frozenset(p) for p in pairs if p not in bad}
+    recs = [json.loads(line) for line in log.read_text().splitlines()]
+    failed = [r for r in recs if r.get("status") == "failed"]
+    assert len(failed) == 4 and all(r["attempts"] == 3 and len(r["errors"]) == 3 for r in failed)
+    assert rep.totals["retried"] == 4
+    assert "4 failed" in rep.summary()
+    # a rerun (the file readable again) completes exactly the failed pairs
+    src.fail.clear()
+    rep2 = match_collection(src, pairs, sink, dict(progress=False, workers=0))
+    assert rep2.done == 4 and rep2.skipped == 6 and not rep2.failed
+    assert_same_as_reference(sink, views, pairs)
+
+
+# ------------------------------------------------------------------------------------------------ checks
+def test_bad_pairs_and_configs_fail_before_any_work(views):
+    src, sink = DictSource(views), ListSink()
+    with pytest.raises(InputError, match="not in the source.*'nope.jpg'"):
+        match_collection(src, [("view0.jpg", "nope.jpg")], sink, dict(progress=False))
+    with pytest.raises(InputError, match="self-pair"):
+        match_collection(src, [("view0.jpg", "view0.jpg")], sink, dict(progress=False))
+    assert sink.rows == {} and src.loads == 0
+    for bad in (dict(mode="fast"), dict(workers=-1), dict(workers=2, scheduler="tcp://x:1"), dict(retries=-1),
+                dict(chunk_pairs=0), dict(matcher=dict(ratio=2.0)), dict(matcher=dict(nope=1)), dict(cache_mb=-1),
+                dict(scheduler="")):
+        with pytest.raises(ConfigError):
+            CollectionConfig(**bad)
+
+
+def test_duplicate_and_reversed_pairs_are_matched_once(views):
+    src, sink = DictSource(views), ListSink()
+    pairs = [("view0.jpg", "view1.jpg"), ("view1.jpg", "view0.jpg"), ("view0.jpg", "view1.jpg"), ("view1.jpg", "view2.jpg")]
+    rep = match_collection(src, pairs, sink, dict(progress=False))
+    assert rep.done == 2 and rep.totals["duplicates_dropped"] == 2 and rep.totals["pairs"] == 2
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 7), st.integers(0, 7)).filter(lambda p: p[0] != p[1]), max_size=40,
+                unique_by=lambda p: frozenset(p)), st.integers(1, 5))
+def test_plan_tasks_covers_each_pair_once_grouped_by_anchor(raw, chunk):
+    names = [f"im{i}" for i in range(8)]
+    pairs = [(names[a], names[b]) for a, b in raw]
+    plan = plan_tasks(pairs, names, chunk)
+    got = [p for tasks in plan.values() for t in tasks for p in t]
+    assert sorted(got) == sorted(pairs)
+    assert list(plan) == sorted(plan, key=names.index)
+    for anchor, tasks in plan.items():
+        for t in tasks:
+            assert 1 <= len(t) <= chunk
+            for a, b in t:
+                assert anchor in (a, b) and names.index(anchor) == min(names.index(a), names.index(b))
+        assert all(len(t) == chunk for t in list(tasks)[:-1])  # only an anchor's last task is short
+
+
+# ------------------------------------------------------------------------------------------------ local cluster
+@pytest.fixture(scope="module")
+def picklable_doubles():
+    """Worker processes get the test doubles by value (this test module is not importable there)."""
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    os.environ["GM_TEST_IN_WORKER"] = "1"  # inherited by the workers; this process never loads a "die" image
+    yield
+    os.environ.pop("GM_TEST_IN_WORKER", None)
+    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+def test_two_worker_local_cluster_same_matches_and_a_dying_worker_is_reported(views, picklable_doubles):
+    """2 single-threaded worker processes: the same matches as the direct calls; a pair whose worker dies on it
+    (os._exit while loading) is retried alone, then reported failed -- the other pairs all complete."""
+    src = DictSource(views, die={"other.jpg"})
+    sink = ListSink()
+    names = src.names()
+    pairs = all_pairs(names)
+    rep = match_collection(src, pairs, sink, dict(progress=False, workers=2, chunk_pairs=2, retries=1))
+    assert rep.totals["backend"] == "local-cluster" and rep.totals["workers"] >= 2
+    bad = [p for p in pairs if "other.jpg" in p]
+    good = [p for p in pairs if p not in bad]
+    assert {frozenset(p) for p, _ in rep.failed} == {frozenset(p) for p in bad}
+    assert all("task failed" in r for _, r in rep.failed), rep.failed
+    assert rep.done == len(good)
+    assert_same_as_reference(sink, views, good)
+    workers = {r["worker"] for r in rep.per_pair if r["status"] == "done"}
+    assert all(w.startswith("tcp://") for w in workers)
