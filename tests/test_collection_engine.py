@@ -268,31 +268,51 @@ def test_plan_tasks_covers_each_pair_once_grouped_by_anchor(raw, chunk):
 
 # ------------------------------------------------------------------------------------------------ local cluster
 @pytest.fixture(scope="module")
-def picklable_doubles():
-    """Worker processes get the test doubles by value (this test module is not importable there)."""
+def cluster_client():
+    """One 2-worker cluster of single-threaded processes for the cluster tests (started once: ~5 s here).
+
+    The workers get the test doubles by value (this test module is not importable there) and the environment
+    variable that arms DictSource's ``die`` names (this process never loads them)."""
     import cloudpickle
+    from distributed import Client, LocalCluster
+
+    from guidedmatch.collection.engine import _SINGLE_THREAD_ENV
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    os.environ["GM_TEST_IN_WORKER"] = "1"  # inherited by the workers; this process never loads a "die" image
-    yield
-    os.environ.pop("GM_TEST_IN_WORKER", None)
+    import dask
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                               env={**_SINGLE_THREAD_ENV, "GM_TEST_IN_WORKER": "1"})
+        client = Client(cluster, set_as_default=False)
+    yield client
+    client.close()
+    cluster.close()
     cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
 
 
-def test_two_worker_local_cluster_same_matches_and_a_dying_worker_is_reported(views, picklable_doubles):
-    """2 single-threaded worker processes: the same matches as the direct calls; a pair whose worker dies on it
-    (os._exit while loading) is retried alone, then reported failed -- the other pairs all complete."""
-    src = DictSource(views, die={"other.jpg"})
-    sink = ListSink()
-    names = src.names()
-    pairs = all_pairs(names)
-    rep = match_collection(src, pairs, sink, dict(progress=False, workers=2, chunk_pairs=2, retries=1))
-    assert rep.totals["backend"] == "local-cluster" and rep.totals["workers"] >= 2
+def test_two_worker_cluster_gives_the_same_matches(views, cluster_client, tmp_path):
+    src, sink = DictSource(views), ListSink()
+    pairs = all_pairs(src.names())
+    rep = match_collection(src, pairs, sink, dict(progress=False, chunk_pairs=2), client=cluster_client)
+    assert rep.totals["backend"] == "client" and rep.totals["workers"] == 2 and rep.done == 10 and not rep.failed
+    assert_same_as_reference(sink, views, pairs)
+    workers = {r["worker"] for r in rep.per_pair}
+    assert workers <= set(cluster_client.scheduler_info()["workers"]) and len(workers) >= 1
+    # images are shipped to a worker once, not once per pair: loads <= images x workers < pairs x 2
+    assert rep.totals["image_loads"] <= 5 * 2 < 2 * len(pairs)
+
+
+def test_a_pair_killing_its_worker_is_quarantined_then_reported_others_complete(views, cluster_client):
+    """A pair whose worker dies on it (os._exit while loading) fails the tasks running next to it; those pairs are
+    rerun alone and complete, the killer is retried alone and reported failed -- nothing is silently missing."""
+    feats = {k: views[k] for k in ("view0.jpg", "view1.jpg", "view2.jpg", "other.jpg")}
+    src, sink = DictSource(feats, die={"other.jpg"}), ListSink()
+    pairs = all_pairs(src.names())
+    rep = match_collection(src, pairs, sink, dict(progress=False, chunk_pairs=2, retries=0), client=cluster_client)
     bad = [p for p in pairs if "other.jpg" in p]
     good = [p for p in pairs if p not in bad]
     assert {frozenset(p) for p, _ in rep.failed} == {frozenset(p) for p in bad}
-    assert all("task failed" in r for _, r in rep.failed), rep.failed
-    assert rep.done == len(good)
-    assert_same_as_reference(sink, views, good)
-    workers = {r["worker"] for r in rep.per_pair if r["status"] == "done"}
-    assert all(w.startswith("tcp://") for w in workers)
+    assert all("task failed" in r and "KilledWorker" in r for _, r in rep.failed), rep.failed
+    assert rep.done == len(good) == 3
+    assert_same_as_reference(sink, feats, good)

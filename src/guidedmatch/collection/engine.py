@@ -376,8 +376,9 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
     return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats)
 
 
-def run_task(source, spec: _TaskSpec, pairs: list) -> list[PairOutcome]:
-    """A task: match ``pairs`` (list of ``(name1, name2)``) with the run's image cache of this process."""
+def run_task(source, spec: _TaskSpec, pairs: list, *anchor_token) -> list[PairOutcome]:
+    """A task: match ``pairs`` (list of ``(name1, name2)``) with the run's image cache of this process
+    (``anchor_token``: the result of :func:`_anchor_token`, only there to place the task)."""
     cache = _worker_cache(source, spec)
     worker = _worker_name()
     return [_match_one(cache, a, b, spec, worker) for a, b in pairs]
@@ -440,35 +441,46 @@ def plan_tasks(pairs: list[tuple[str, str]], names: list[str], chunk_pairs: int)
 
 
 class _Queue:
-    """Tasks waiting to run, handed out with anchor affinity (the client-side half of the locality rule)."""
+    """Tasks waiting to run: one-pair retries first, then the planned tasks in anchor order, spread over the first
+    anchors so that each anchor has at most ``per_anchor`` tasks in flight (the workers start on different
+    anchors; an anchor's later tasks follow it to the worker holding it, see :func:`_run_dask`)."""
 
-    def __init__(self, plan):
-        self.plan = plan                      # anchor -> deque of tasks
-        self.retry = collections.deque()      # one-pair retry tasks, served first
-        self.affinity: dict[str, str] = {}    # anchor -> worker that ran it
-
-    def __len__(self) -> int:
-        return len(self.retry) + sum(len(v) for v in self.plan.values())
+    def __init__(self, plan, per_anchor: int = 2):
+        self.plan = plan                                   # anchor -> deque of tasks
+        self.retry: collections.deque = collections.deque()  # one-pair retry tasks
+        self.suspects: collections.deque = collections.deque()  # one-pair tasks to run alone on the cluster
+        self.per_anchor = per_anchor
+        self.inflight: collections.Counter = collections.Counter()  # anchor -> tasks in flight
 
     def __bool__(self) -> bool:
-        return bool(self.retry) or bool(self.plan)
+        return bool(self.retry) or bool(self.plan) or bool(self.suspects)
 
-    def take(self, worker: str) -> list | None:
+    def take(self, *, idle: bool = True) -> tuple[str | None, list] | None:
+        """``(anchor, task)`` (anchor None for a retry task), or None when only suspects wait and the cluster is not
+        ``idle`` (a suspect runs alone). Call :meth:`finished` with the anchor when the task is done."""
         if self.retry:
-            return self.retry.popleft()
-        anchor = next((a for a in self.plan if self.affinity.get(a) == worker), None)
-        if anchor is None:  # a new anchor, else help with another worker's anchor
-            anchor = next((a for a in self.plan if a not in self.affinity), None)
+            return None, self.retry.popleft()
+        if not self.plan:
+            return (None, self.suspects.popleft()) if idle and self.suspects else None
+        anchor = next((a for a in self.plan if self.inflight[a] < self.per_anchor), None)
         if anchor is None:
-            anchor = next(iter(self.plan), None)
-        if anchor is None:
-            return None
-        self.affinity[anchor] = worker
+            anchor = next(iter(self.plan))
         tasks = self.plan[anchor]
         task = tasks.popleft()
         if not tasks:
             del self.plan[anchor]
-        return task
+        self.inflight[anchor] += 1
+        return anchor, task
+
+    def finished(self, anchor: str | None) -> bool:
+        """Count a task of ``anchor`` done; True when the anchor has nothing left (queued or in flight)."""
+        if anchor is None:
+            return False
+        self.inflight[anchor] -= 1
+        if self.inflight[anchor] <= 0 and anchor not in self.plan:
+            del self.inflight[anchor]
+            return True
+        return False
 
 
 # ============================================================================================ writer
@@ -485,18 +497,30 @@ class _Writer:
         self.sums = collections.Counter()
         self.geometry_source = collections.Counter()
         self.verdicts = collections.Counter()
+        self.quarantined: set = set()
 
-    def handle(self, out: PairOutcome) -> None:
+    def handle(self, out: PairOutcome, *, task_failed: bool = False, alone: bool = True) -> None:
+        """Write a done pair; requeue or report a failed one.
+
+        ``task_failed``: the whole task failed (its worker died, ...), not the pair's own code. When that task ran
+        next to others (``alone=False``) the pair may be a bystander of another pair that killed the worker: it is
+        put in quarantine (run later alone, one task on the whole cluster) without counting an attempt.
+        """
         key = frozenset((out.name1, out.name2))
-        self.attempts[key] += 1
         if not out.ok:
             self.errors.setdefault(key, []).append(out.reason)
+            if task_failed and not alone and key not in self.quarantined:
+                self.quarantined.add(key)
+                self.queue.suspects.append([(out.name1, out.name2)])
+                return
+            self.attempts[key] += 1
             if self.attempts[key] <= self.cfg.retries:
-                self.queue.retry.append([(out.name1, out.name2)])
+                (self.queue.suspects if task_failed else self.queue.retry).append([(out.name1, out.name2)])
                 return
             self.failed.append(((out.name1, out.name2), out.reason))
             self._record(out, dict(status="failed", reason=out.reason))
             return
+        self.attempts[key] += 1
         self.sink.write(out.name1, out.name2, out.pairs, out.scores, out.geometry)
         self.done += 1
         st = out.stats
@@ -561,7 +585,10 @@ def _choose_backend(cfg: CollectionConfig, client, work: int) -> tuple[str, int 
 def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer) -> dict:
     cache = _ImageCache(source, spec)
     while queue:
-        for out in [_match_one(cache, a, b, spec, "in-process") for a, b in queue.take("in-process")]:
+        anchor, task = queue.take()
+        outs = [_match_one(cache, a, b, spec, "in-process") for a, b in task]
+        queue.finished(anchor)
+        for out in outs:
             writer.handle(out)
     hits, loads, load_s = cache.counters()
     return dict(cache_hits=hits, image_loads=loads, workers=1)
@@ -579,7 +606,22 @@ def _start_local_cluster(n: int):
         return cluster, Client(cluster, set_as_default=False)
 
 
+def _anchor_token(source, spec: _TaskSpec, anchor: str) -> str:
+    """Load (prepare) ``anchor`` into this worker's cache; the tiny result is what the anchor's tasks depend on."""
+    with contextlib.suppress(Exception):  # a failing load is reported per pair by the tasks themselves
+        _worker_cache(source, spec).get(anchor, (anchor,))
+    return anchor
+
+
 def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, tasks_per_worker: int) -> dict:
+    """Run the queue on a Dask cluster; at most ``tasks_per_worker`` tasks per worker in flight.
+
+    Locality without placement restrictions: each anchor image gets a tiny *token* task that loads it into a
+    worker's cache; the anchor's pair tasks depend on the token, so Dask's scheduler runs them on the worker
+    holding it (work stealing still balances an idle worker). If that worker dies, the token is recomputed
+    elsewhere. (Hard ``workers=[...]`` restrictions were tried first: a finished task whose worker died before its
+    result was gathered was then never recomputed, and the run hung.)
+    """
     from distributed import as_completed
 
     def live_workers() -> list[str]:
@@ -593,56 +635,69 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
     if not workers:
         raise GuidedMatchError("the dask cluster has no workers (waited 60 s); start some with `dask worker ADDRESS`")
     seen_workers = set(workers)
-    load = collections.Counter()
     inflight: dict = {}
+    tokens: dict = {}
     ac = as_completed(loop=client.loop)
     seq = 0
     last_refresh = time.monotonic()
 
     def fill() -> None:
         nonlocal seq
-        for w in workers:
-            while load[w] < tasks_per_worker and queue:
-                task = queue.take(w)
-                seq += 1
-                fut = client.submit(run_task, source, spec, task, workers=[w], allow_other_workers=True, pure=False,
-                                    key=f"guidedmatch-pairs-{spec.run_id}-{seq}")
-                inflight[fut] = (w, task)
-                load[w] += 1
-                ac.add(fut)
+        while len(inflight) < tasks_per_worker * max(1, len(workers)) and queue:
+            got = queue.take(idle=not inflight)
+            if got is None:  # only suspects left: one at a time, alone on the cluster
+                return
+            anchor, task = got
+            seq += 1
+            deps = ()
+            if anchor is not None:
+                if anchor not in tokens:
+                    tokens[anchor] = client.submit(_anchor_token, source, spec, anchor, pure=False,
+                                                   key=f"guidedmatch-anchor-{spec.run_id}-{seq}")
+                deps = (tokens[anchor],)
+            fut = client.submit(run_task, source, spec, task, *deps, pure=False,
+                                key=f"guidedmatch-pairs-{spec.run_id}-{seq}")
+            inflight[fut] = (anchor, task, seq if not inflight else None)
+            ac.add(fut)
 
     try:
         fill()
         while inflight:
             fut = next(ac)
-            w, task = inflight.pop(fut)
-            load[w] -= 1
+            anchor, task, alone_seq = inflight.pop(fut)
+            alone = alone_seq == seq and not inflight  # nothing else ran on the cluster meanwhile
+            failed = False
             try:
                 outs = fut.result()
-            except Exception as exc:  # noqa: BLE001 - worker died (KilledWorker), lost connection, ...: retry alone
+            except Exception as exc:  # noqa: BLE001 - worker died (KilledWorker), lost connection, ...
+                failed = True
                 reason = f"task failed: {type(exc).__name__}: {exc}"
-                outs = [PairOutcome(a, b, False, reason, stats=dict(worker=w)) for a, b in task]
+                outs = [PairOutcome(a, b, False, reason, stats=dict(worker="?")) for a, b in task]
             fut.release()
+            if queue.finished(anchor):
+                tokens.pop(anchor).release()
             for out in outs:
-                writer.handle(out)
-            if time.monotonic() - last_refresh > 1.0 or not workers:
+                writer.handle(out, task_failed=failed, alone=alone and len(task) == 1)
+            if time.monotonic() - last_refresh > 1.0:
                 last_refresh = time.monotonic()
                 workers = live_workers()
                 seen_workers.update(workers)
             fill()
             if not inflight and queue:  # every worker gone: wait a little for replacements, then give up
-                for _ in range(20):
-                    time.sleep(0.5)
+                for _ in range(40):
                     workers = live_workers()
                     if workers:
                         break
+                    time.sleep(0.5)
                 if not workers:
                     while queue:
-                        for a, b in queue.take("none"):
+                        anchor, task = queue.take()
+                        queue.finished(anchor)
+                        for a, b in task:
                             writer.handle(PairOutcome(a, b, False, "no dask workers left"))
                 fill()
     finally:
-        for fut in inflight:
+        for fut in list(inflight) + list(tokens.values()):
             fut.cancel()
     counters = client.run(_cache_counters, spec.run_id)
     with contextlib.suppress(Exception):
@@ -711,7 +766,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
         except Exception as exc:  # noqa: BLE001 - checked before any cluster starts
             raise InputError(f"the feature source cannot be sent to worker processes (not picklable: {exc}); "
                              f"use workers=0") from None
-    queue = _Queue(plan_tasks(todo, names, cfg.chunk_pairs))
+    queue = _Queue(plan_tasks(todo, names, cfg.chunk_pairs), cfg.tasks_per_worker)
     from tqdm.auto import tqdm
 
     log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
