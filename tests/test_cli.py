@@ -82,7 +82,7 @@ def test_guided_mode_with_config_plot_and_regions(image_files, tmp_path, capsys)
     assert rc == 0, capsys.readouterr().err
     assert (tmp_path / "regions.png").stat().st_size > 10_000
     d = read_matches(tmp_path / "m.npz")
-    assert d["stats"]["mode"] == "so+epi+ia" and d["stats"]["num_model_updates"] == 2
+    assert d["stats"]["method"] == "so+epi+ia" and d["stats"]["num_model_updates"] == 2
     assert main(["match", a, b, "--mode", "epi", "--config", "update_every=60", "--plot", str(tmp_path / "mf.png")]) == 0
     assert (tmp_path / "mf.png").exists()
 
@@ -91,7 +91,7 @@ def test_bad_config_key_and_regions_without_model(image_files, tmp_path, capsys)
     a, b = str(image_files / "a.png"), str(image_files / "b.png")
     assert main(["match", a, b, "--config", "no_such_key=1"]) == 2
     err = capsys.readouterr().err
-    assert "bad --config" in err and "band_px" in err and "Traceback" not in err
+    assert "bad --config" in err and "band_px" in err and "no_such_key" in err and "Traceback" not in err
     assert main(["match", a, b, "--mode", "bf", "--plot", str(tmp_path / "r.png"), "--show-regions"]) == 2
     assert "needs a guided mode" in capsys.readouterr().err
     assert not (tmp_path / "r.png").exists()

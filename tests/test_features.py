@@ -77,3 +77,20 @@ def test_unknown_detector_and_bad_option(small_scene):
         detect(small_scene.image1, "surf")
     with pytest.raises(ValueError, match="invalid option"):
         detect(small_scene.image1, "sift", noSuchOption=3)
+
+
+def test_load_image_decodes_grey_files_with_the_decoders_conversion(tmp_path):
+    """A grey read of a colour file is cv2.imread(IMREAD_GRAYSCALE) (libpng's / libjpeg's own conversion, what the
+    benchmarks' ground-truth images have always been read with), not cvtColor of the colour decode, which differs
+    by one grey level in about half of the pixels of a random colour image; colour reads are IMREAD_COLOR."""
+    import cv2
+
+    rgb = np.random.default_rng(0).integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    path = tmp_path / "c.png"
+    cv2.imwrite(str(path), rgb)
+    decoder = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    np.testing.assert_array_equal(load_image(path), decoder)
+    np.testing.assert_array_equal(load_image(path, grey=False), cv2.imread(str(path), cv2.IMREAD_COLOR))
+    converted = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2GRAY)
+    assert (converted != decoder).any()  # the two conversions do differ: the test can tell them apart
+    np.testing.assert_array_equal(load_image(cv2.imread(str(path), cv2.IMREAD_COLOR)), converted)  # arrays: cvtColor

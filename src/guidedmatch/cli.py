@@ -1,13 +1,14 @@
 """Command-line interface: ``guidedmatch match | demo | experiment | bench``.
 
-Every error the user can cause (missing or unreadable image, no features, bad option, mismatched
-descriptors, ...) prints one line ``guidedmatch: error: ...`` on stderr and exits with status 2 --
-never a traceback (``--debug`` shows one). Output files are written atomically.
+Every error the user can cause is a :class:`~guidedmatch.errors.GuidedMatchError` (missing or unreadable image,
+no features, bad option or config value, mismatched descriptors, ...): it prints one line ``guidedmatch: error:
+...`` on stderr and exits with status 2, checked before any detection where possible. Any other exception is a
+bug: one line ``guidedmatch: internal error: ...``, exit status 1. ``--debug`` shows the traceback of either.
+Output files are written atomically.
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -16,12 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .config import MODES, MatcherConfig
+from .errors import ConfigError, GuidedMatchError, InputError, OutputError
 
-MODES = ("bf", "epi", "so", "so+epi", "so+epi+ia")
-
-
-class CLIError(Exception):
-    """An error reported to the user as one line, exit status 2."""
+OUTPUT_FORMATS = (".npz", ".csv", ".json")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -30,7 +29,7 @@ def _parse_kv(items: list[str] | None, what: str) -> dict:
     out = {}
     for item in items or []:
         if "=" not in item:
-            raise CLIError(f"{what} must look like key=value, got {item!r}")
+            raise ConfigError(f"{what} must look like key=value, got {item!r}")
         k, v = item.split("=", 1)
         try:
             out[k.strip()] = json.loads(v)
@@ -54,7 +53,7 @@ def write_matches(path: Path, result, f1, f2) -> None:
     p1 = f1.keypoints[pairs[:, 0]] if len(pairs) else np.zeros((0, 2))
     p2 = f2.keypoints[pairs[:, 1]] if len(pairs) else np.zeros((0, 2))
     suffix = path.suffix.lower()
-    stats_json = to_json(result.stats)
+    stats_json = to_json(result.stats.to_dict())
     if suffix == ".npz":
         atomic_savez(path, pairs=pairs, distances=dist, points1=p1, points2=p2,
                      keypoints1=f1.keypoints, keypoints2=f2.keypoints, stats=np.array(stats_json))
@@ -65,9 +64,9 @@ def write_matches(path: Path, result, f1, f2) -> None:
         atomic_write_text(path, "\n".join(lines) + "\n")
     elif suffix == ".json":
         atomic_write_text(path, to_json(dict(pairs=pairs, distances=dist, points1=p1, points2=p2,
-                                             stats=result.stats), indent=1))
+                                             stats=result.stats.to_dict()), indent=1))
     else:
-        raise CLIError(f"unknown output format {suffix!r}: use .npz, .csv or .json")
+        raise OutputError(f"unknown output format {suffix!r}: use .npz, .csv or .json")
 
 
 def read_matches(path) -> dict:
@@ -78,32 +77,14 @@ def read_matches(path) -> dict:
     return d
 
 
-def run_mode(f1, f2, mode: str, config_overrides: dict | None = None, return_models: bool = False):
-    """Match two feature sets with ``mode`` (``--config`` keys are :class:`MatcherConfig` fields)."""
-    config_overrides = dict(config_overrides or {})
-    if mode not in MODES:
-        raise CLIError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
-    try:
-        from . import matcher
-    except ImportError:
-        matcher = None
-    if matcher is None:
-        if mode != "bf":
-            raise CLIError(f"mode {mode!r} is not available in this build; only 'bf' is")
-        from .bruteforce import match_bruteforce
+def matcher_config(items: list[str] | None) -> MatcherConfig:
+    """``--config KEY=VALUE`` items -> a validated :class:`MatcherConfig` (ConfigError naming the valid keys)."""
+    from .validation import config_from
 
-        allowed = {"ratio", "mutual", "max_distance"}
-        bad = set(config_overrides) - allowed
-        if bad:
-            raise CLIError(f"unknown config key(s) for bf: {', '.join(sorted(bad))}")
-        res = match_bruteforce(f1, f2, **config_overrides)
-        return (res, None) if return_models else res
     try:
-        config = matcher.MatcherConfig(**config_overrides)
-    except TypeError as exc:
-        names = ", ".join(f.name for f in dataclasses.fields(matcher.MatcherConfig))
-        raise CLIError(f"bad --config: {exc}. Known keys: {names}") from None
-    return matcher.match(f1, f2, mode=mode, config=config, return_models=return_models)
+        return config_from(MatcherConfig, _parse_kv(items, "--config"))
+    except ConfigError as exc:
+        raise ConfigError(f"bad --config: {exc}") from None
 
 
 def _detect_both(img1, img2, detector, max_features, options):
@@ -113,35 +94,39 @@ def _detect_both(img1, img2, detector, max_features, options):
     f2 = detect(img2, detector, max_features, **options)
     for name, f in (("IMG1", f1), ("IMG2", f2)):
         if len(f) == 0:
-            raise CLIError(f"no features detected in {name} ({detector}); the image may be blank or too small")
+            raise InputError(f"no features detected in {name} ({detector}); the image may be blank or too small")
     return f1, f2
 
 
 # --------------------------------------------------------------------------- commands
 def cmd_match(args) -> int:
     from .features import load_image
+    from .matcher import match
 
+    # every check that needs no image comes first
+    config = matcher_config(args.config)
+    detector_options = _parse_kv(args.detector_option, "--detector-option")
     if args.show_regions and not args.plot:
-        raise CLIError("--show-regions needs --plot OUT.png")
+        raise ConfigError("--show-regions needs --plot OUT.png")
     if args.show_regions and args.mode == "bf":
-        raise CLIError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
-    if args.output and Path(args.output).suffix.lower() not in (".npz", ".csv", ".json"):
-        raise CLIError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
+        raise ConfigError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
+    if args.output and Path(args.output).suffix.lower() not in OUTPUT_FORMATS:
+        raise OutputError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
 
     img1 = load_image(args.img1)
     img2 = load_image(args.img2)
     t0 = time.perf_counter()
-    f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, _parse_kv(args.detector_option, "--detector-option"))
+    f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, detector_options)
     t_det = time.perf_counter() - t0
-    result, models = run_mode(f1, f2, args.mode, _parse_kv(args.config, "--config"), return_models=True)
+    result, models = match(f1, f2, args.mode, config, return_models=True)
     st = result.stats
     print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s)")
     print(f"mode          : {args.mode}")
     print(f"matches       : {len(result)}")
-    print(f"comparisons   : {st['comparisons']:,} ({100.0 * st['comparisons'] / max(1, len(f1) * len(f2)):.2f} % of brute force)")
-    print(f"matching time : {st['time_s']:.3f} s")
-    for fb in st.get("fallbacks", []):
-        print(f"fallback      : {fb.get('what')}: {fb.get('reason')}")
+    print(f"comparisons   : {st.comparisons:,} ({100.0 * st.comparison_ratio:.2f} % of brute force)")
+    print(f"matching time : {st.time_s:.3f} s")
+    for fb in st.fallbacks:
+        print(f"fallback      : {fb.what}: {fb.reason}")
     if args.output:
         write_matches(Path(args.output), result, f1, f2)
         print(f"wrote         : {args.output}")
@@ -150,7 +135,7 @@ def cmd_match(args) -> int:
 
         if args.show_regions:
             if models is None:
-                raise CLIError("--show-regions needs a guided mode whose models were fitted (see the fallbacks above)")
+                raise InputError("--show-regions needs a guided mode whose models were fitted (see the fallbacks above)")
             plots.search_regions(args.plot, img1, img2, f1, f2, result, models)
         else:
             plots.motion_field(args.plot, img1, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
@@ -162,6 +147,7 @@ def cmd_match(args) -> int:
 def cmd_demo(args) -> int:
     from . import plots
     from .features import detect
+    from .matcher import match
     from .testing.scenes import make_scene
 
     out = Path(args.out)
@@ -172,19 +158,18 @@ def cmd_demo(args) -> int:
     f1 = detect(scene.image1, args.detector, args.max_features)
     f2 = detect(scene.image2, args.detector, args.max_features)
     print(f"      {len(f1)} x {len(f2)} features")
-    modes = MODES if _has_matcher() else ("bf",)
-    print(f"[3/4] matching with {', '.join(modes)}")
+    print(f"[3/4] matching with {', '.join(MODES)}")
     rows, panels = [], []
     bf_comp = max(1, len(f1) * len(f2))
-    for mode in modes:
-        res = run_mode(f1, f2, mode)
+    for mode in MODES:
+        res = match(f1, f2, mode)
         p1, p2 = f1.keypoints[res.pairs[:, 0]], f2.keypoints[res.pairs[:, 1]]
         ok = scene.correct(p1, p2)
-        rows.append(dict(mode=mode, comparisons=res.stats["comparisons"], matches=len(res), true=int(ok.sum()),
-                         precision=float(ok.mean()) if len(ok) else float("nan"), time_s=res.stats["time_s"],
-                         fallbacks=len(res.stats.get("fallbacks", []))))
+        rows.append(dict(mode=mode, comparisons=res.stats.comparisons, matches=len(res), true=int(ok.sum()),
+                         precision=float(ok.mean()) if len(ok) else float("nan"), time_s=res.stats.time_s,
+                         fallbacks=len(res.stats.fallbacks)))
         panels.append(dict(pts1=p1, pts2=p2, correct=ok,
-                           title=f"{mode}: {int(ok.sum())}/{len(res)} correct, {100 * res.stats['comparisons'] / bf_comp:.2f} % comparisons"))
+                           title=f"{mode}: {int(ok.sum())}/{len(res)} correct, {100 * res.stats.comparisons / bf_comp:.2f} % comparisons"))
     print()
     print(format_table(rows, bf_comp))
     print()
@@ -208,34 +193,24 @@ def format_table(rows: list[dict], bf_comp: int) -> str:
     return "\n".join(lines)
 
 
-def _has_matcher() -> bool:
-    try:
-        from . import matcher  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def cmd_experiment(args) -> int:
     if args.which == "alignment":
-        try:
-            from .evaluation.alignment_sim import run_alignment_experiment
-        except ImportError as exc:
-            raise CLIError(f"the alignment experiment is not available: {exc}") from None
+        from .evaluation.alignment_sim import run_alignment_experiment
+
         summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=Path(args.out), seed=args.seed, progress=True)
         if isinstance(summary, dict) and summary.get("table_md"):
             print(summary["table_md"])
         print(f"wrote results to {args.out}")
         return 0
-    raise CLIError(f"unknown experiment {args.which!r}")
+    raise ConfigError(f"unknown experiment {args.which!r}")
 
 
 def cmd_bench(args) -> int:
-    try:
-        from .evaluation import bench
-    except ImportError as exc:
-        raise CLIError(f"the benchmark harness is not available: {exc}") from None
-    return int(bench.main(args) or 0)
+    from .evaluation.bench import run_benchmarks
+
+    run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
+                   detector=args.detector, seed=args.seed)
+    return 0
 
 
 # --------------------------------------------------------------------------- parser
@@ -260,6 +235,9 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .evaluation.bench import BENCHMARKS
+    from .features import DETECTORS
+
     p = argparse.ArgumentParser(prog="guidedmatch", description="Guided image feature matching with feature spatial "
                                 "order and epipolar geometry (Teng & Dong).")
     p.add_argument("--version", action="version", version=f"guidedmatch {__version__}")
@@ -271,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("img1")
     m.add_argument("img2")
     m.add_argument("--mode", default="so+epi+ia", choices=MODES, help="matching mode (default: so+epi+ia)")
-    m.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze", "brisk"), help="feature detector (default sift)")
+    m.add_argument("--detector", default="sift", choices=DETECTORS, help="feature detector (default sift)")
     m.add_argument("--max-features", type=_positive_int, default=None, help="keep at most N strongest features per image")
     m.add_argument("--detector-option", action="append", metavar="KEY=VALUE", help="OpenCV detector option, e.g. contrastThreshold=0.01 (repeatable)")
     m.add_argument("--config", action="append", metavar="KEY=VALUE", help="matcher config override, e.g. ratio=0.9 (repeatable)")
@@ -287,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--size", type=_size, default=(1600, 1200), help="image size WxH (default 1600x1200)")
     d.add_argument("--roll", type=float, default=30.0, help="camera-2 roll in degrees (default 30)")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze", "brisk"))
+    d.add_argument("--detector", default="sift", choices=DETECTORS)
     d.add_argument("--max-features", type=_positive_int, default=None)
     d.set_defaults(func=cmd_demo)
 
@@ -300,12 +278,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="reproduce the paper's tables side by side with the paper and peers",
                        description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
-    b.add_argument("which", choices=("oxford", "synthetic", "real", "alignment", "all"))
+    b.add_argument("which", choices=BENCHMARKS)
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
     b.add_argument("--repeats", type=_positive_int, default=None, help="timing repeats per method (median)")
-    b.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze", "brisk"))
+    b.add_argument("--detector", default="sift", choices=DETECTORS)
     b.add_argument("--seed", type=int, default=0)
     b.set_defaults(func=cmd_bench)
     return p
@@ -319,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (CLIError, ValueError, FileNotFoundError, IsADirectoryError, PermissionError, ImportError) as exc:
+    except GuidedMatchError as exc:  # the user's input or configuration: one line, exit 2
         if args.debug:
             raise
         print(f"guidedmatch: error: {exc}", file=sys.stderr)
@@ -327,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("guidedmatch: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:  # pragma: no cover - last resort, still no traceback without --debug
+    except Exception as exc:  # a bug: one line, exit 1 (--debug: the traceback)
         if args.debug:
             raise
         print(f"guidedmatch: internal error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)", file=sys.stderr)

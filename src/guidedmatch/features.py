@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import ConfigError, ImageReadError, InputError
+
 DETECTORS = ("sift", "orb", "akaze", "brisk")
 BINARY_KINDS = ("orb", "akaze", "brisk")
 
@@ -52,29 +54,29 @@ class Features:
         if kp.size == 0:
             kp = kp.reshape(0, 2)
         if kp.ndim != 2 or kp.shape[1] != 2:
-            raise ValueError(f"keypoints must be (N, 2), got shape {kp.shape}")
+            raise InputError(f"keypoints must be (N, 2), got shape {kp.shape}")
         if not np.all(np.isfinite(kp)):
             bad = int((~np.isfinite(kp).all(axis=1)).sum())
-            raise ValueError(f"keypoints contain {bad} non-finite (NaN/inf) coordinate rows")
+            raise InputError(f"keypoints contain {bad} non-finite (NaN/inf) coordinate rows")
         desc = np.asarray(self.descriptors)
         if desc.size == 0 and desc.ndim < 2:
             desc = desc.reshape(0, 128 if desc.dtype != np.uint8 else 32)
         if desc.ndim != 2:
-            raise ValueError(f"descriptors must be (N, D), got shape {desc.shape}")
+            raise InputError(f"descriptors must be (N, D), got shape {desc.shape}")
         if len(desc) != len(kp):
-            raise ValueError(f"{len(kp)} keypoints but {len(desc)} descriptors")
+            raise InputError(f"{len(kp)} keypoints but {len(desc)} descriptors")
         if self.kind in BINARY_KINDS and desc.dtype != np.uint8:
-            raise ValueError(f"binary descriptors ({self.kind}) must be uint8 packed bits, got {desc.dtype}")
+            raise InputError(f"binary descriptors ({self.kind}) must be uint8 packed bits, got {desc.dtype}")
         if desc.dtype != np.uint8 or self.kind == "sift":
             # float descriptors (L2); uint8 SIFT (e.g. COLMAP's) is cast to float32, not treated as bits
             if not np.issubdtype(desc.dtype, np.number):
-                raise ValueError(f"descriptors must be numeric, got {desc.dtype}")
+                raise InputError(f"descriptors must be numeric, got {desc.dtype}")
             desc = desc.astype(np.float32, copy=False)
             if not np.all(np.isfinite(desc)):
-                raise ValueError("descriptors contain NaN/inf")
+                raise InputError("descriptors contain NaN/inf")
         w, h = (int(v) for v in self.image_size)
         if w <= 0 or h <= 0:
-            raise ValueError(f"image_size must be positive (w, h), got {self.image_size}")
+            raise InputError(f"image_size must be positive (w, h), got {self.image_size}")
         object.__setattr__(self, "keypoints", kp)
         object.__setattr__(self, "descriptors", np.ascontiguousarray(desc))
         object.__setattr__(self, "image_size", (w, h))
@@ -83,7 +85,7 @@ class Features:
             if v is not None:
                 v = np.asarray(v, dtype=np.float32).reshape(-1)
                 if len(v) != len(kp):
-                    raise ValueError(f"{name} has {len(v)} entries for {len(kp)} keypoints")
+                    raise InputError(f"{name} has {len(v)} entries for {len(kp)} keypoints")
                 object.__setattr__(self, name, v)
 
     def __len__(self) -> int:
@@ -122,7 +124,7 @@ class Features:
         if descriptors is None:
             descriptors = np.zeros((0, 32), np.uint8) if kind in BINARY_KINDS else np.zeros((0, 128), np.float32)
             if n:
-                raise ValueError("descriptors are None for a non-empty keypoint list")
+                raise InputError("descriptors are None for a non-empty keypoint list")
         kp = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(n, 2)
         return cls(kp, descriptors, tuple(image_size), kind,
                    scales=np.array([k.size for k in keypoints], np.float32),
@@ -154,10 +156,22 @@ class Features:
         """Load what :meth:`save` wrote."""
         path = Path(path)
         if not path.exists():
-            raise FileNotFoundError(f"features file not found: {path}")
+            raise InputError(f"features file not found: {path}")
         with np.load(path, allow_pickle=False) as z:
             extra = {k: z[k] for k in ("scales", "angles", "responses") if k in z}
             return cls(z["keypoints"], z["descriptors"], tuple(int(v) for v in z["image_size"]), str(z["kind"]), **extra)
+
+
+def as_features(obj, name: str = "features") -> Features:
+    """``obj`` as :class:`Features`: Features pass through; a tuple ``(keypoints (N,2) px, descriptors (N,D),
+    image_size (w,h))`` or ``(keypoints, descriptors, image_size, kind)`` goes through :meth:`Features.from_arrays`
+    (float descriptors: L2; uint8 with kind ``"user"``: packed bits, Hamming). InputError otherwise."""
+    if isinstance(obj, Features):
+        return obj
+    if isinstance(obj, tuple) and len(obj) in (3, 4):
+        return Features.from_arrays(*obj)
+    raise InputError(f"{name} must be Features or a tuple (keypoints, descriptors, image_size[, kind]); "
+                     f"got {type(obj).__name__}")
 
 
 def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
@@ -200,30 +214,35 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def load_image(image_or_path, grey: bool = True) -> np.ndarray:
-    """Read an image as ``uint8``; grey ``(h, w)`` when ``grey`` else ``(h, w, 3)`` BGR.
+    """Read an image as ``uint8``; grey ``(h, w)`` when ``grey`` else ``(h, w, 3)`` BGR. The one image reader
+    of the package (CLI, :func:`detect`, the evaluation datasets).
 
-    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255).
-    Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unreadable or empty image.
+    Accepts a path or an array (grey, BGR or BGRA; float arrays in [0, 1] are scaled to 0..255, uint16 to the
+    high byte). A file is decoded by ``cv2.imread`` with ``IMREAD_GRAYSCALE`` when ``grey`` (the decoder's own
+    grey conversion, as hloc and the benchmarks use; for JPEG it decodes the luminance directly) else
+    ``IMREAD_COLOR``; an array is converted with ``cv2.cvtColor``. The two grey conversions may differ by one
+    grey level in some pixels (libpng / libjpeg round differently from ``cvtColor``).
+    Raises :class:`~guidedmatch.errors.ImageReadError` for a missing, unreadable or empty image.
     """
     import cv2
 
     if isinstance(image_or_path, (str, os.PathLike)):
         path = Path(image_or_path)
         if not path.exists():
-            raise FileNotFoundError(f"image not found: {path}")
+            raise ImageReadError(f"image not found: {path}")
         if path.is_dir():
-            raise ValueError(f"image path is a directory: {path}")
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            raise ImageReadError(f"image path is a directory: {path}")
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
         if img is None:
-            raise ValueError(f"cannot read image (unknown format or corrupt file): {path}")
+            raise ImageReadError(f"cannot read image (unknown format or corrupt file): {path}")
     else:
         img = np.asarray(image_or_path)
     if img.size == 0 or img.ndim < 2 or min(img.shape[:2]) == 0:
-        raise ValueError(f"empty image (shape {img.shape})")
+        raise ImageReadError(f"empty image (shape {img.shape})")
     if img.dtype != np.uint8:
         if np.issubdtype(img.dtype, np.floating):
             if not np.all(np.isfinite(img)):
-                raise ValueError("image contains NaN/inf")
+                raise ImageReadError("image contains NaN/inf")
             scale = 255.0 if img.max() <= 1.0 else 1.0
             img = np.clip(img * scale, 0, 255).astype(np.uint8)
         elif img.dtype == np.uint16:
@@ -233,7 +252,7 @@ def load_image(image_or_path, grey: bool = True) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim == 3 and img.shape[2] not in (3, 4):
-        raise ValueError(f"unsupported channel count {img.shape[2]}")
+        raise ImageReadError(f"unsupported channel count {img.shape[2]}")
     if grey:
         if img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
@@ -257,9 +276,9 @@ def _make_detector(method: str, max_features: int | None, options: dict):
         name = "AKAZE_create" if method == "akaze" else "BRISK_create"
         factory = getattr(cv2, name, None) or getattr(getattr(cv2, "xfeatures2d", None), name, None)
         if factory is None:
-            raise ValueError(f"{method} is not available in this OpenCV build ({cv2.__version__})")
+            raise ConfigError(f"{method} is not available in this OpenCV build ({cv2.__version__})")
         return factory(**options)
-    raise ValueError(f"unknown detector {method!r}; choose one of {', '.join(DETECTORS)}")
+    raise ConfigError(f"unknown detector {method!r}; choose one of {', '.join(DETECTORS)}")
 
 
 def detect(image_or_path, method: str = "sift", max_features: int | None = None, **detector_options) -> Features:
@@ -274,17 +293,26 @@ def detect(image_or_path, method: str = "sift", max_features: int | None = None,
 
     Returns:
         :class:`Features` (possibly empty: a textureless image gives ``len(f) == 0``; callers decide).
+
+    Raises:
+        ImageReadError: missing / unreadable image. ConfigError: unknown detector or detector option.
+
+    >>> import numpy as np
+    >>> from guidedmatch.testing.scenes import make_scene
+    >>> f = detect(make_scene((320, 240), roll_deg=10.0, seed=1).image1, max_features=200)
+    >>> len(f), f.keypoints.shape, f.descriptors.dtype, f.image_size
+    (200, (200, 2), dtype('float32'), (320, 240))
     """
     import cv2
 
     method = method.lower()
     if method not in DETECTORS:
-        raise ValueError(f"unknown detector {method!r}; choose one of {', '.join(DETECTORS)}")
+        raise ConfigError(f"unknown detector {method!r}; choose one of {', '.join(DETECTORS)}")
     img = load_image(image_or_path, grey=True)
     try:
         det = _make_detector(method, max_features, dict(detector_options))
     except (TypeError, cv2.error) as exc:
-        raise ValueError(f"invalid option for {method} detector: {exc}") from None
+        raise ConfigError(f"invalid option for {method} detector: {exc}") from None
     kps, desc = det.detectAndCompute(img, None)
     kps = list(kps)
     if max_features and len(kps) > max_features:

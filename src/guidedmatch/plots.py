@@ -127,7 +127,7 @@ def search_regions(path, image1, image2, f1, f2, result, models=None, num_sample
     gy, gx = np.mgrid[0:h2:step, 0:w2:step]
     P = np.c_[gx.ravel(), gy.ravel(), np.ones(gx.size)] @ models.H2.T
     Pa = P[:, :2] / P[:, 2:3]
-    keep, lo, hi, lines = models.regions(np.array(picks))
+    keep, lo, hi, lines, _ = models.regions(np.array(picks))
     fig, axes = plt.subplots(len(picks), 2, figsize=(10, 3.6 * len(picks)), squeeze=False)
     for r, q in enumerate(picks):
         a0, a1 = axes[r]
