@@ -229,10 +229,8 @@ def test_failed_pair_is_retried_then_reported_never_missing(views, tmp_path):
 # ------------------------------------------------------------------------------------------------ checks
 def test_bad_pairs_and_configs_fail_before_any_work(views):
     src, sink = DictSource(views), ListSink()
-    with pytest.raises(InputError, match="not in the source.*'nope.jpg'"):
+    with pytest.raises(InputError, match="not in the feature source.*'nope.jpg'"):
         match_collection(src, [("view0.jpg", "nope.jpg")], sink, dict(progress=False))
-    with pytest.raises(InputError, match="self-pair"):
-        match_collection(src, [("view0.jpg", "view0.jpg")], sink, dict(progress=False))
     assert sink.rows == {} and src.loads == 0
     for bad in (dict(mode="fast"), dict(workers=-1), dict(workers=2, scheduler="tcp://x:1"), dict(retries=-1),
                 dict(chunk_pairs=0), dict(matcher=dict(ratio=2.0)), dict(matcher=dict(nope=1)), dict(cache_mb=-1),
@@ -241,11 +239,13 @@ def test_bad_pairs_and_configs_fail_before_any_work(views):
             CollectionConfig(**bad)
 
 
-def test_duplicate_and_reversed_pairs_are_matched_once(views):
+def test_duplicate_reversed_and_self_pairs_are_dropped_and_reported(views):
     src, sink = DictSource(views), ListSink()
-    pairs = [("view0.jpg", "view1.jpg"), ("view1.jpg", "view0.jpg"), ("view0.jpg", "view1.jpg"), ("view1.jpg", "view2.jpg")]
+    pairs = [("view0.jpg", "view1.jpg"), ("view1.jpg", "view0.jpg"), ("view0.jpg", "view1.jpg"),
+             ("view1.jpg", "view2.jpg"), ("view2.jpg", "view2.jpg")]
     rep = match_collection(src, pairs, sink, dict(progress=False))
-    assert rep.done == 2 and rep.totals["duplicates_dropped"] == 2 and rep.totals["pairs"] == 2
+    assert rep.done == 2 and rep.totals["pairs"] == 2 and set(sink.rows) == {frozenset(p) for p in pairs[::3]}
+    assert rep.totals["dropped"] == dict(self_pairs=1, duplicates=1, reversed_duplicates=1)
 
 
 @settings(max_examples=60, deadline=None)
@@ -316,3 +316,166 @@ def test_a_pair_killing_its_worker_is_quarantined_then_reported_others_complete(
     assert all("task failed" in r and "KilledWorker" in r for _, r in rep.failed), rep.failed
     assert rep.done == len(good) == 3
     assert_same_as_reference(sink, feats, good)
+
+
+# ------------------------------------------------------------------------------------------------ CLI on COLMAP
+SRC = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir, "src"))
+
+
+def run_cli(*args, timeout=240, **kw):
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    env.pop("GM_TEST_IN_WORKER", None)
+    return subprocess.run([sys.executable, "-m", "guidedmatch.cli", *map(str, args)], capture_output=True,
+                          text=True, env=env, timeout=timeout, **kw)
+
+
+@pytest.fixture(scope="module")
+def rendered_db(tmp_path_factory):
+    """5 rendered views of a textured wall (known poses) + 1 isolated view -> a COLMAP database (ours, SIFT)."""
+    from guidedmatch.collection.sources import images_to_database
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(5, (480, 360), seed=2)
+    root = tmp_path_factory.mktemp("rendered")
+    write_views(mv, root / "img")
+    images_to_database(root / "img", root / "fresh.db", max_features=1500, progress=False)
+    return root, mv
+
+
+def db_rows(path) -> dict:
+    """Every pair's matches and two-view geometry (config, inlier matches) of a COLMAP database, by names."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(path))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        out = {}
+        for pid in db.read_num_matches()[0]:
+            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+            tvg = db.read_two_view_geometry(i1, i2) if db.exists_two_view_geometry(i1, i2) else None
+            out[frozenset((names[i1], names[i2]))] = (
+                np.asarray(db.read_matches(i1, i2)).tolist(),
+                None if tvg is None else (int(tvg.config), np.asarray(tvg.inlier_matches).tolist()))
+        return out
+    finally:
+        db.close()
+
+
+def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rendered_db, tmp_path):
+    """`guidedmatch colmap DB --workers 2` killed (SIGKILL, whole process group) after its first pairs: the
+    database stays valid, a rerun skips the stored pairs and completes it, and the result equals an uninterrupted
+    run pair for pair; pycolmap.incremental_mapping then registers every connected view with no verification step
+    and the non-overlapping pairs have no two-view geometry inliers."""
+    import shutil
+    import signal
+    import subprocess
+    import time
+
+    import pycolmap
+
+    from guidedmatch.collection.pairs import exhaustive_pairs
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import ColmapSource
+
+    root, mv = rendered_db
+    db, ref = tmp_path / "db.db", tmp_path / "ref.db"
+    shutil.copy(root / "fresh.db", db)
+    shutil.copy(root / "fresh.db", ref)
+    n_pairs = len(mv.names) * (len(mv.names) - 1) // 2
+    log = tmp_path / "run1.jsonl"
+    env = {**os.environ, "PYTHONPATH": SRC}
+    env.pop("GM_TEST_IN_WORKER", None)
+    proc = subprocess.Popen([sys.executable, "-m", "guidedmatch.cli", "colmap", str(db), "--workers", "2",
+                             "--log", str(log), "--no-progress"], env=env, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and proc.poll() is None:
+            if log.exists() and log.read_text().count('"event": "pair"') >= 2:
+                break
+            time.sleep(0.01)
+        os.killpg(proc.pid, signal.SIGKILL)  # the command and its worker processes, at once
+    finally:
+        proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    stored = db_rows(db)  # a valid database: every stored pair has its matches and its geometry
+    assert 2 <= len(stored) < n_pairs and all(g is not None for _, g in stored.values())
+
+    r2 = run_cli("colmap", db, "--workers", "2", "--log", tmp_path / "run2.jsonl")
+    assert r2.returncode == 0, r2.stderr
+    assert f"{len(stored)} skipped" in r2.stdout
+    summary = json.loads((tmp_path / "run2.jsonl").read_text().splitlines()[-1])
+    assert summary["event"] == "summary" and summary["done"] == n_pairs - len(stored) and summary["failed"] == []
+
+    src = ColmapSource(ref)  # the uninterrupted reference run (in-process)
+    with ColmapSink(ref) as sink:
+        rep = match_collection(src, exhaustive_pairs(src.names()), sink, dict(progress=False, workers=0))
+    assert rep.done == n_pairs and not rep.failed
+    assert db_rows(db) == db_rows(ref)
+
+    rows = db_rows(db)
+    for i, j in mv.non_overlapping_pairs():
+        _, g = rows[frozenset((mv.names[i], mv.names[j]))]
+        assert g[1] == [], (mv.names[i], mv.names[j])
+    recs = pycolmap.incremental_mapping(db, root / "img", tmp_path / "sparse")
+    assert len(recs) == 1
+    registered = {im.name for im in next(iter(recs.values())).images.values() if im.has_pose}
+    assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
+
+    r3 = run_cli("colmap", db, "--log", "none")  # a rerun skips every pair
+    assert r3.returncode == 0 and f"{n_pairs} skipped" in r3.stdout
+
+
+def test_cli_refuses_a_second_writer_and_bad_inputs_with_one_line(rendered_db, tmp_path):
+    import shutil
+
+    from guidedmatch.collection.sinks import ColmapSink
+
+    root, mv = rendered_db
+    db = tmp_path / "db.db"
+    shutil.copy(root / "fresh.db", db)
+
+    def one_line_error(r, *needles):
+        assert r.returncode == 2, (r.returncode, r.stderr)
+        err = r.stderr.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("guidedmatch: error:"), r.stderr
+        for n in needles:
+            assert n in err[0], err[0]
+
+    one_line_error(run_cli("colmap", tmp_path / "missing.db"), "not found")
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{mv.names[0]} {mv.names[1]}\n{mv.names[0]} nope.png\n")
+    one_line_error(run_cli("colmap", db, "--pairs", pairs, "--workers", "0"), "nope.png")
+    one_line_error(run_cli("colmap", db, "--config", "band_px=-1"), "band_px")
+    with ColmapSink(db):  # another writer holds the database
+        one_line_error(run_cli("colmap", db, "--workers", "0"), "being written by another process")
+    assert db_rows(db) == {}
+
+
+def test_cli_pair_whose_features_cannot_be_loaded_fails_with_one_line_and_the_rest_is_written(rendered_db, tmp_path):
+    """A worker raising on one image (its keypoint blob holds NaNs): its pairs are retried, then reported; the CLI
+    writes every other pair and exits 2 with one line naming the reason."""
+    import shutil
+    import sqlite3
+
+    root, mv = rendered_db
+    db = tmp_path / "db.db"
+    shutil.copy(root / "fresh.db", db)
+    bad = mv.names[1]
+    con = sqlite3.connect(db)  # corrupt one image's keypoints in place (same size, NaN coordinates)
+    (iid,) = con.execute("SELECT image_id FROM images WHERE name = ?", (bad,)).fetchone()
+    (blob,) = con.execute("SELECT data FROM keypoints WHERE image_id = ?", (iid,)).fetchone()
+    con.execute("UPDATE keypoints SET data = ? WHERE image_id = ?", (np.full(len(blob) // 4, np.nan, np.float32)
+                                                                    .tobytes(), iid))
+    con.commit()
+    con.close()
+    r = run_cli("colmap", db, "--workers", "0", "--retries", "1", "--no-progress")
+    n_bad = len(mv.names) - 1
+    assert r.returncode == 2, r.stderr
+    err = r.stderr.strip().splitlines()
+    assert len(err) == 1 and f"{n_bad} of " in err[0] and "non-finite" in err[0], r.stderr
+    rows = db_rows(db)
+    assert len(rows) == len(mv.names) * (len(mv.names) - 1) // 2 - n_bad
+    assert all(bad not in k for k in rows)

@@ -1,4 +1,4 @@
-"""Command-line interface: ``guidedmatch match | demo | experiment | bench``.
+"""Command-line interface: ``guidedmatch match | demo | experiment | bench | colmap | hloc``.
 
 Every error the user can cause is a :class:`~guidedmatch.errors.GuidedMatchError` (missing or unreadable image,
 no features, bad option or config value, mismatched descriptors, ...): it prints one line ``guidedmatch: error:
@@ -286,6 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--detector", default="sift", choices=DETECTORS)
     b.add_argument("--seed", type=int, default=0)
     b.set_defaults(func=cmd_bench)
+
+    from .collection.commands import add_collection_commands  # colmap, hloc (issue 12)
+
+    add_collection_commands(sub)
     return p
 
 

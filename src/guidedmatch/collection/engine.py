@@ -79,7 +79,7 @@ import numpy as np
 
 from ..errors import ConfigError, GuidedMatchError, InputError
 from ..geometry import TwoViewGeometry, VerdictConfig, two_view_geometry
-from ..matcher import MODES, MatcherConfig
+from ..config import MODES, MatcherConfig
 from ..validation import check_bool, check_choice, check_number, config_from
 
 __all__ = ["CollectionConfig", "CollectionReport", "PairOutcome", "match_collection", "plan_tasks",
@@ -120,12 +120,6 @@ class CollectionConfig:
         check_choice(own, "mode", self.mode, MODES)
         object.__setattr__(self, "matcher", config_from(MatcherConfig, self.matcher))
         object.__setattr__(self, "verdict", config_from(VerdictConfig, self.verdict))
-        from ..matcher import GuidedMatcher
-
-        try:  # the matcher validates its own config in its constructor: fail here, before any work
-            GuidedMatcher(self.matcher)
-        except ValueError as exc:
-            raise ConfigError(f"{own}.matcher: {exc}") from None
         check_number(own, "workers", self.workers, lo=0, integer=True, allow_none=True)
         if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
             raise ConfigError(f"{own}.scheduler must be an address like 'tcp://host:8786' or None; got {self.scheduler!r}")
@@ -368,10 +362,10 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
     except Exception as exc:  # noqa: BLE001 - reported per pair, retried by the client, never silently lost
         return PairOutcome(a, b, False, f"{type(exc).__name__}: {exc}",
                            stats=dict(worker=worker, time_s=time.perf_counter() - t0))
-    st = res.stats or {}
+    st = res.stats
     stats = dict(n1=len(A.features), n2=len(B.features), matches=len(res), verdict=geom.verdict, model=geom.model,
-                 inliers=int(geom.num_inliers), geometry_source=source, comparisons=st.get("comparisons"),
-                 fallbacks=[f"{f.get('what')}: {f.get('reason')}" for f in st.get("fallbacks", [])],
+                 inliers=int(geom.num_inliers), geometry_source=source, comparisons=getattr(st, "comparisons", None),
+                 fallbacks=[f"{f.what}: {f.reason}" for f in getattr(st, "fallbacks", ())],
                  load_s=t1 - t0, match_s=t2 - t1, verdict_s=t3 - t2, worker=worker)
     return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats)
 
@@ -390,35 +384,6 @@ def _cache_counters(run_id: str):
 
 
 # ============================================================================================ planning
-def _normalize_pairs(pairs, names: list[str]) -> tuple[list[tuple[str, str]], int]:
-    """``(pairs, duplicates_dropped)``: checked against the source's names; self-pairs are an error."""
-    items = getattr(pairs, "pairs", pairs)
-    known = set(names)
-    out, seen, dups, unknown = [], set(), 0, []
-    for p in items:
-        try:
-            a, b = p
-        except (TypeError, ValueError):
-            raise InputError(f"a pair must be (name1, name2); got {p!r}") from None
-        a, b = str(a), str(b)
-        for n in (a, b):
-            if n not in known:
-                unknown.append(n)
-        if a == b:
-            raise InputError(f"self-pair ({a!r}, {a!r}): an image cannot be matched with itself")
-        key = frozenset((a, b))
-        if key in seen:
-            dups += 1
-            continue
-        seen.add(key)
-        out.append((a, b))
-    if unknown:
-        uniq = sorted(set(unknown))
-        raise InputError(f"{len(uniq)} image name(s) of the pair list are not in the source: "
-                         f"{', '.join(map(repr, uniq[:5]))}{' ...' if len(uniq) > 5 else ''}")
-    return out, dups
-
-
 def plan_tasks(pairs: list[tuple[str, str]], names: list[str], chunk_pairs: int) -> "collections.OrderedDict":
     """Group pairs by anchor image (the one first in ``names`` order) into tasks of <= ``chunk_pairs`` pairs.
 
@@ -708,6 +673,17 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
 
 
 # ============================================================================================ entry point
+def _done_pairs(sink, candidates) -> set:
+    """``sink.done_pairs(candidates)`` when the sink takes the pair list (an exact answer), else ``done_pairs()``."""
+    import inspect
+
+    try:
+        takes = "candidates" in inspect.signature(sink.done_pairs).parameters
+    except (TypeError, ValueError):
+        takes = False
+    return set(sink.done_pairs(candidates) if takes else sink.done_pairs())
+
+
 def match_collection(source, pairs, sink, config: CollectionConfig | dict | None = None, *,
                      client=None) -> CollectionReport:
     """Match every pair of ``pairs`` with features from ``source`` and write them into ``sink``.
@@ -746,9 +722,16 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     """
     cfg = config_from(CollectionConfig, config)
     t_start = time.perf_counter()
+    from .pairs import PairList, normalize_pairs
+
     names = list(source.names())
-    todo_all, dups = _normalize_pairs(pairs, names)
-    done_before = sink.done_pairs()
+    checked = normalize_pairs(getattr(pairs, "pairs", pairs), names)  # InputError naming unknown images
+    if isinstance(pairs, PairList):  # keep the report of the normalization done when the list was made
+        checked = PairList(checked.pairs, pairs.report)
+    pairs = checked
+    todo_all = list(pairs.pairs)
+    dropped = {k: v.get("count", 0) for k, v in pairs.report.items() if isinstance(v, dict) and "count" in v}
+    done_before = _done_pairs(sink, todo_all)
     todo = [p for p in todo_all if frozenset(p) not in done_before]
     skipped = len(todo_all) - len(todo)
     nfeat = {}
@@ -813,7 +796,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
         shutdown_s = time.perf_counter() - t0
     wall = time.perf_counter() - t_start
     s = writer.sums
-    totals = dict(pairs=len(todo_all), duplicates_dropped=dups, work=work, backend=backend,
+    totals = dict(pairs=len(todo_all), dropped=dropped, work=work, backend=backend,
                   backend_reason=reason, backend_rule=INPROCESS_RULE, inprocess_max_work=cfg.inprocess_max_work,
                   workers=facts["workers"], mode=cfg.mode, matches=int(s["matches"]), inliers=int(s["inliers"]),
                   verified_pairs=int(s["verified_pairs"]), verdicts=dict(writer.verdicts),
