@@ -29,6 +29,9 @@ _EXPORTS = {
     "fit_spatial_order": "spatial_order", "SpatialOrderConfig": "spatial_order",
     "align_from_fundamental": "alignment",
     "two_view_geometry": "geometry", "TwoViewGeometry": "geometry", "VerdictConfig": "geometry",
+    # collections (issue 12)
+    "match_collection": "collection.engine", "CollectionConfig": "collection.engine",
+    "CollectionReport": "collection.engine",
     # errors
     "GuidedMatchError": "errors", "ConfigError": "errors", "InputError": "errors", "ImageReadError": "errors",
     "OutputError": "errors", "DatabaseError": "errors", "DatabaseBusyError": "errors", "MemoryLimitError": "errors",

@@ -25,12 +25,14 @@ Scheduling (locality)
 ---------------------
 Pairs are grouped by an *anchor* image (of the two images of a pair, the one first in source order) and cut into
 tasks of at most ``chunk_pairs`` pairs sharing the anchor. Each worker process keeps an LRU cache of loaded
-(prepared) images; a task loads its anchor once and reuses it for all its pairs. The client hands tasks to
-workers itself (pull-based, at most ``tasks_per_worker`` in flight per worker) and sends the next task of an
-anchor to the worker that ran the anchor's previous tasks, so an image's prepared state is reused across that
-image's pairs; with exhaustive pairs and a cache holding the collection, every worker loads every image at most
-once. Features travel from the source to a worker once per cache miss (never with each pair): the source object
-is picklable (paths only) and each worker opens it once per run.
+(prepared) images; a task loads its anchor once and reuses it for all its pairs. Each anchor also gets a tiny
+*token* task that loads the anchor into some worker's cache; the anchor's pair tasks depend on that token, so
+Dask's scheduler runs them on the worker holding it (data locality; work stealing still feeds an idle worker) and
+an image's prepared state is reused across that image's pairs. The client submits tasks in anchor order, spread
+over the first anchors (at most ``tasks_per_worker`` tasks of one anchor in flight), with at most
+``workers * tasks_per_worker`` tasks in flight in total. With exhaustive pairs and a cache holding the collection,
+every worker loads every image at most once. Features travel from the source to a worker once per cache miss (never
+with each pair): the source object is picklable (paths only) and each worker opens it once per run.
 
 Results stream back to ONE writer -- the caller's sink in this process -- in completion order; each
 ``sink.write`` is one transaction, so the sink always holds complete pairs only.
@@ -664,7 +666,10 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
     finally:
         for fut in list(inflight) + list(tokens.values()):
             fut.cancel()
-    counters = client.run(_cache_counters, spec.run_id)
+    try:
+        counters = client.run(_cache_counters, spec.run_id)
+    except Exception:  # noqa: BLE001 - a worker restarting: the counters are only statistics
+        counters = {}
     with contextlib.suppress(Exception):
         client.run(_forget_run, spec.run_id)
     hits = sum(c[0] for c in counters.values() if c)
