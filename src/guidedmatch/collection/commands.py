@@ -117,21 +117,28 @@ def _finish(report, log_path) -> int:
     return 0
 
 
+def _setup(args, output: Path, open_source, spec: str):
+    """Everything checked before matching: options -> config, the source, the pair list, descriptor types."""
+    from .pairs import pairs_from_spec
+
+    try:
+        cfg = _collection_config(args, output.with_name(output.name + ".guidedmatch.jsonl"))
+    except GuidedMatchError as exc:
+        raise type(exc)(f"bad option: {exc}") from None
+    source = open_source()
+    pairs = pairs_from_spec(spec, source.names())
+    _print_pairs(pairs)
+    source.validate(pairs.names())
+    return cfg, source, pairs
+
+
 def cmd_colmap(args) -> int:
     from .engine import match_collection
-    from .pairs import pairs_from_spec
     from .sinks import ColmapSink
     from .sources import ColmapSource
 
     db = Path(args.database)
-    try:
-        cfg = _collection_config(args, db.with_name(db.name + ".guidedmatch.jsonl"))
-    except GuidedMatchError as exc:
-        raise type(exc)(f"bad option: {exc}") from None
-    source = ColmapSource(db)
-    pairs = pairs_from_spec(args.pairs, source.names())
-    _print_pairs(pairs)
-    source.validate(pairs.names())
+    cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     with ColmapSink(db, geometry=args.geometry) as sink:
         report = match_collection(source, pairs, sink, cfg)
         if args.geometry == "colmap" and report.done:
@@ -142,19 +149,11 @@ def cmd_colmap(args) -> int:
 
 def cmd_hloc(args) -> int:
     from .engine import match_collection
-    from .pairs import pairs_from_spec
     from .sinks import H5MatchesSink
     from .sources import H5Source
 
     out = Path(args.matches)
-    try:
-        cfg = _collection_config(args, out.with_name(out.name + ".guidedmatch.jsonl"))
-    except GuidedMatchError as exc:
-        raise type(exc)(f"bad option: {exc}") from None
-    source = H5Source(args.features)
-    pairs = pairs_from_spec(args.pairs, source.names())
-    _print_pairs(pairs)
-    source.validate(pairs.names())
+    cfg, source, pairs = _setup(args, out, lambda: H5Source(args.features), args.pairs)
     with H5MatchesSink(out, source) as sink:
         report = match_collection(source, pairs, sink, cfg)
     return _finish(report, cfg.log_path)
