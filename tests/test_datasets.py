@@ -4,8 +4,9 @@ import pytest
 from guidedmatch.datasets import (EpipolarGT, HomographyGT, data_root, oxford_pairs, strecha_pairs,
                                   synthesize_pair, synthetic_pairs)
 
+from guidedmatch.testing.data import OXFORD_FILES, PHOTO_FILES, STRECHA_FILES, needs_data
+
 ROOT = data_root()
-needs_data = pytest.mark.skipif(ROOT is None, reason="evaluation data not found (set GUIDEDMATCH_DATA)")
 
 
 def test_data_root_override_and_env(tmp_path, monkeypatch):
@@ -61,7 +62,7 @@ def test_synthetic_homography_maps_image1_pixels_onto_image2(set_id, small_scene
 
 
 @pytest.mark.data
-@needs_data
+@needs_data(*OXFORD_FILES, *STRECHA_FILES)
 def test_oxford_and_strecha_pairs_load_with_consistent_gt():
     from guidedmatch.bruteforce import match_bruteforce
     from guidedmatch.features import detect
@@ -80,7 +81,7 @@ def test_oxford_and_strecha_pairs_load_with_consistent_gt():
 
 
 @pytest.mark.data
-@needs_data
+@needs_data(*PHOTO_FILES)
 def test_synthetic_pairs_are_deterministic_and_lazy():
     a = next(iter(synthetic_pairs(ROOT, 2, n_pairs=1, seed=3, max_side=500)))
     b = next(iter(synthetic_pairs(ROOT, 2, n_pairs=1, seed=3, max_side=500)))
@@ -219,7 +220,7 @@ def test_strecha_pairs_parse_the_pairs_format(tmp_path, rng):
 
 
 @pytest.mark.data
-@needs_data
+@needs_data(*STRECHA_FILES)
 def test_strecha_gt_from_the_real_pairs_file_satisfies_epipolar_constraint(rng):
     pairs = strecha_pairs(ROOT, with_sizes=False)
     for p in pairs[::5]:
@@ -232,7 +233,7 @@ def test_strecha_gt_from_the_real_pairs_file_satisfies_epipolar_constraint(rng):
 
 
 @pytest.mark.data
-@needs_data
+@needs_data(*OXFORD_FILES)
 def test_oxford_sizes_and_homographies():
     ox = {p.name: p for p in oxford_pairs(ROOT, sequences=("wall", "bark"), targets=(2, 6))}
     wall = ox["oxford/wall/1-2"]
@@ -327,7 +328,7 @@ def test_colour_transform_keeps_geometry_and_is_seeded():
 
 
 @pytest.mark.data
-@needs_data
+@needs_data(*PHOTO_FILES)
 def test_synthetic_photos_are_reused_with_different_transforms():
     from guidedmatch.datasets import list_photos, synthetic_pair
 
@@ -380,7 +381,7 @@ def _legacy_symmetric_epipolar(F, p1, p2):
 
 
 @pytest.mark.data
-@needs_data
+@needs_data(*OXFORD_FILES, *STRECHA_FILES)
 def test_gt_decisions_unchanged_by_the_shared_geometry_functions():
     """HomographyGT / EpipolarGT now use alignment.apply_homography and epipolar.symmetric_epipolar_distance
     (element-wise products, normalised lines) instead of their own copies. On the real GT (12 Oxford pairs,

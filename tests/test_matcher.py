@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 
@@ -226,3 +228,230 @@ def test_band_only_rescue_matches_outside_the_window_only_in_the_band(scene_and_
     dfin = drop.flags["phase"] == drop.stats.num_model_updates
     inside_d, _, _, _ = admissible_x_ranges(dm.so, dm.pts1a[drop.pairs[dfin, 0], 0])
     assert inside_d.all()
+
+
+# ------------------------------------------------------------------ slow references of the steps
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra.numpy import arrays  # noqa: E402
+
+from guidedmatch.matcher import draw_order, mutual_check, one_to_one  # noqa: E402
+
+
+def _draw_order_reference(x, width, groups, key):
+    """§III-A in plain Python: group by x-interval, each group sorted by (key, index), then round-robin."""
+    buckets = [[] for _ in range(groups)]
+    for i in sorted(range(len(x)), key=lambda i: (key[i], i)):
+        buckets[min(max(int(x[i] / width * groups), 0), groups - 1)].append(i)
+    out, r = [], 0
+    while len(out) < len(x):
+        out += [b[r] for b in buckets if r < len(b)]
+        r += 1
+    return out
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=arrays(np.float64, st.integers(0, 60), elements=st.floats(0, 99.9)),
+       groups=st.integers(1, 9), data=st.data())
+def test_draw_order_equals_reference(x, groups, data):
+    key = data.draw(arrays(np.float32, len(x), elements=st.sampled_from([-2.0, -1.0, 0.0, 0.5, 3.0])))  # many ties
+    got = draw_order(x, 100.0, groups, key)
+    assert got.dtype == np.int64
+    assert got.tolist() == _draw_order_reference(x, 100.0, groups, key)
+
+
+def _one_to_one_reference(q, j, d):
+    best = {}
+    for k in range(len(q)):
+        if j[k] not in best or (d[k], q[k]) < (d[best[j[k]]], q[best[j[k]]]):
+            best[j[k]] = k
+    return sorted(best.values())
+
+
+@settings(max_examples=200, deadline=None)
+@given(n=st.integers(0, 40), data=st.data())
+def test_one_to_one_equals_reference(n, data):
+    q = data.draw(arrays(np.int64, n, elements=st.integers(0, 1000), unique=True))
+    j = data.draw(arrays(np.int64, n, elements=st.integers(0, 6)))
+    d = data.draw(arrays(np.float32, n, elements=st.sampled_from([0.0, 1.0, 1.5, 2.0])))
+    assert one_to_one(q, j, d).tolist() == _one_to_one_reference(q, j, d)
+
+
+def _hamming_rows(a, b):
+    return np.unpackbits(a ^ b, axis=-1).sum(-1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), binary=st.booleans())
+def test_mutual_check_equals_reference(data, binary):
+    n1, n2 = data.draw(st.integers(1, 12)), data.draw(st.integers(1, 12))
+    if binary:  # packed bits, Hamming
+        d1 = data.draw(arrays(np.uint8, (n1, 2), elements=st.sampled_from([0, 1, 3, 255])))
+        d2 = data.draw(arrays(np.uint8, (n2, 2), elements=st.sampled_from([0, 1, 3, 255])))
+        dist = lambda a, b: _hamming_rows(a, b)  # noqa: E731
+    else:
+        d1 = data.draw(arrays(np.float32, (n1, 4), elements=st.integers(0, 3).map(float)))
+        d2 = data.draw(arrays(np.float32, (n2, 4), elements=st.integers(0, 3).map(float)))
+        dist = lambda a, b: ((a - b) ** 2).sum(-1)  # noqa: E731
+    m = data.draw(st.integers(0, n1))
+    q = np.arange(m, dtype=np.int64)
+    j = data.draw(arrays(np.int64, m, elements=st.integers(0, n2 - 1)))
+    sel, comps = mutual_check(d1, d2, q, j)
+    ref = [k for k in range(m) if np.argmin(dist(d1, d2[j[k]])) == q[k]]  # argmin: lowest index on ties
+    assert sel.tolist() == ref
+    assert comps == len(np.unique(j)) * n1
+
+
+@pytest.mark.parametrize("mode", ["bf", "so+epi+ia"])
+def test_mutual_means_the_full_mutual_check_in_every_mode(scene_and_features, mode):
+    _, f1, f2 = scene_and_features
+    base = match(f1, f2, mode, FAST.replace(one_to_one=False))
+    mut = match(f1, f2, mode, FAST.replace(one_to_one=False, mutual=True))
+    d1, d2 = f1.descriptors.astype(np.float64), f2.descriptors.astype(np.float64)
+    nearest_i = np.argmin((d1 ** 2).sum(1)[None, :] - 2 * d2[base.pairs[:, 1]] @ d1.T, axis=1)  # over ALL of image 1
+    ok = nearest_i == base.pairs[:, 0]
+    assert 0 < ok.sum() < len(base)
+    np.testing.assert_array_equal(mut.pairs, base.pairs[ok])
+    assert mut.stats.dropped_by_mutual == len(base) - ok.sum()
+    if mode != "bf":  # the reverse search is counted
+        assert mut.stats.comparisons == base.stats.comparisons + len(np.unique(base.pairs[:, 1])) * len(f1)
+
+
+def _in_final_region_reference(models, i, j):
+    """The final search region of (i, j), one match at a time in plain Python (§III-C x-range, §III-D band, the
+    band-only rescue), from the model's parts: admissible x-range, F_aligned, inlier x-extent."""
+    from guidedmatch.spatial_order import admissible_x_ranges
+
+    x1, y1 = models.pts1a[i]
+    x2, y2 = models.pts2a[j]
+    ok = True
+    if models.so is not None:
+        keep, lo, hi, _ = admissible_x_ranges(models.so, np.array([x1]))
+        if keep[0]:
+            ok = lo[0] <= x2 <= hi[0]
+        else:
+            r = models.inlier_x1_range
+            ok = (models.outside_window == "band" and models.F is not None and r[0] <= x1 <= r[1])
+    if models.F is not None:
+        a, b, c = models.F_aligned @ np.array([x1, y1, 1.0])
+        ok = ok and abs(a * x2 + b * y2 + c) / math.hypot(a, b) <= models.band_px
+    return ok
+
+
+def test_recheck_drops_exactly_the_early_matches_outside_the_final_region(scene_and_features):
+    _, f1, f2 = scene_and_features
+    cfg = MatcherConfig(one_to_one=False)  # 3 updates of 200: early matches of phases 0, 1, 2 to re-check
+    off, models = match(f1, f2, "so+epi+ia", cfg.replace(recheck=False), return_models=True)
+    on = match(f1, f2, "so+epi+ia", cfg)
+    last = off.stats.num_model_updates
+    keep = [k for k, (i, j) in enumerate(off.pairs)
+            if off.flags["phase"][k] == last or _in_final_region_reference(models, i, j)]
+    dropped = np.setdiff1d(np.arange(len(off)), keep)
+    assert len(dropped) >= 5 and (off.flags["phase"][dropped] > 0).any()  # guided early matches are re-checked too
+    assert not off.flags["in_band"][dropped].all()  # some dropped ones are in the band but outside the x-range
+    np.testing.assert_array_equal(on.pairs, off.pairs[keep])
+    np.testing.assert_array_equal(on.distances, off.distances[keep])
+    assert on.stats.dropped_by_recheck == len(off) - len(keep)
+    # and the one-to-one filter applied after it equals its reference
+    both = match(f1, f2, "so+epi+ia", cfg.replace(one_to_one=None))
+    sel = _one_to_one_reference(on.pairs[:, 0], on.pairs[:, 1], on.distances)
+    np.testing.assert_array_equal(both.pairs, on.pairs[sel])
+    assert both.stats.dropped_by_one_to_one == len(on) - len(sel)
+
+
+def test_forced_f_failure_is_reported_and_matching_continues(scene_and_features, monkeypatch):
+    import guidedmatch.epipolar as epi
+    from guidedmatch.results import Failure
+
+    monkeypatch.setattr(epi, "estimate_fundamental", lambda *a, **k: Failure("forced for the test"))
+    _, f1, f2 = scene_and_features
+    r = match(f1, f2, "so+epi+ia", FAST)
+    fb = [f for f in r.stats.fallbacks if f.what == "fundamental"]
+    assert [f.at_update for f in fb] == [0, 1]  # one per model update, each while fitting it
+    assert all(f.reason == "F estimation failed: forced for the test; spatial order only" for f in fb)
+    assert r.stats.F is None and r.stats.alignment_H2 is None
+    assert all(u.F_inliers is None and u.so_usable for u in r.stats.updates)
+    assert r.flags["in_band"].all() and len(r) > 50  # no band, spatial order only
+    e = match(f1, f2, "epi", FAST)  # no model at all in epi: every feature against all of image 2
+    assert e.stats.comparisons == len(f1) * len(f2)
+    assert {f.reason for f in e.stats.fallbacks if f.what == "fundamental"} == {
+        "F estimation failed: forced for the test; no epipolar guidance"}
+
+
+# ------------------------------------------------------------------ small fixtures with an obvious answer
+def _hand_features(descriptors, size=(10, 10)):
+    d = np.asarray(descriptors, np.float32)
+    xy = np.c_[np.arange(len(d), dtype=float), np.zeros(len(d))]
+    return Features.from_arrays(xy, d, size)
+
+
+def test_hand_fixture_ratio_one_to_one_and_mutual():
+    # image 2: three descriptors. image 1: feature 0 is 1 away from j=0, feature 1 is 2 away from j=0 (and far from
+    # the others), feature 2 is equally far from j=1 and j=2 (fails the ratio test), feature 3 matches j=2 exactly.
+    f2 = _hand_features([[0, 0], [10, 0], [0, 10]])
+    f1 = _hand_features([[1, 0], [-2, 0], [6, 6], [0, 10]])
+    r = match(f1, f2, "bf")  # default: bf is the ratio-test baseline, no one-to-one
+    assert r.pairs.tolist() == [[0, 0], [1, 0], [3, 2]]
+    np.testing.assert_array_equal(r.distances, [1, 2, 0])
+    o = match(f1, f2, "bf", {"one_to_one": True})  # j=0 keeps its closest image-1 feature, 0
+    assert o.pairs.tolist() == [[0, 0], [3, 2]] and o.stats.dropped_by_one_to_one == 1
+    m = match(f1, f2, "bf", {"mutual": True})  # the same by the full mutual check
+    assert m.pairs.tolist() == [[0, 0], [3, 2]]
+    assert match(f1, f2, "bf", {"ratio": None}).pairs.tolist() == [[0, 0], [1, 0], [2, 1], [3, 2]]
+    assert match(f1, f2, "bf", {"max_distance": 1.5}).pairs.tolist() == [[0, 0], [3, 2]]
+    # too few features for a model: a guided mode matches like brute force, says so, and filters one-to-one
+    g = match(f1, f2, "so+epi+ia")
+    assert g.pairs.tolist() == [[0, 0], [3, 2]] and g.stats.comparisons == 12
+    # ... and two matches carry no order structure: the per-match probabilities are NaN, and reported
+    assert [f.what for f in g.stats.fallbacks] == ["updates", "so_prob"] and np.isnan(g.flags["so_prob"]).all()
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_known_geometry_unique_descriptors_every_mode_finds_the_permutation(mode):
+    """300 points of a known 3-D two-view geometry, each with its own random descriptor, identical in both views;
+    image 2 lists them in a shuffled order. The answer is obvious: every point matches itself."""
+    from guidedmatch.testing.twoview import general_pair
+
+    s = general_pair(rng=3, n_points=300, max_angle_deg=10.0)
+    n = len(s.x1)
+    rng = np.random.default_rng(0)
+    desc = rng.integers(0, 256, (n, 32)).astype(np.float32)
+    perm = rng.permutation(n)  # image-2 feature k is point perm[k]
+    f1 = Features.from_arrays(s.x1, desc, s.size1)
+    f2 = Features.from_arrays(s.x2[perm], desc[perm], s.size2)
+    # sparse points: many bands hold only the true match, so accept single candidates here
+    cfg = MatcherConfig(update_every=40, num_updates=2, min_model_matches=16, single_candidate="accept")
+    r = match(f1, f2, mode, cfg)
+    inv = np.argsort(perm)
+    assert r.pairs[:, 1].tolist() == inv[r.pairs[:, 0]].tolist() and (r.distances == 0).all()
+    if mode == "bf":
+        assert len(r) == n and r.stats.comparisons == n * n
+        return
+    assert r.stats.num_model_updates == 2 and not r.stats.fallbacks and r.stats.comparisons < 0.5 * n * n
+    # every feature is matched, except those outside the final overlap window ω* (spatial-order modes)
+    assert len(r) + r.stats.dropped_outside_overlap == n
+    unmatched = np.setdiff1d(np.arange(n), r.pairs[:, 0])
+    if mode in ("so", "so+epi"):  # (so+epi+ia: ω* is in aligned coordinates)
+        lo, hi = r.stats.updates[-1].window1_x
+        assert np.all((s.x1[unmatched, 0] < lo) | (s.x1[unmatched, 0] > hi))
+    elif mode == "epi":
+        assert len(unmatched) == 0
+
+
+def test_flags_and_stats_are_the_same_shape_in_every_mode(scene_and_features):
+    import json
+
+    _, f1, f2 = scene_and_features
+    for mode in MODES:
+        r = match(f1, f2, mode, FAST)
+        assert list(r.flags) == ["phase", "single_candidate", "in_band", "so_prob"]
+        assert [v.dtype for v in r.flags.values()] == [np.int64, bool, bool, np.float32]
+        so = r.flags["so_prob"]
+        if mode.startswith("so"):
+            assert np.isfinite(so).all() and ((so >= 0) & (so <= 1)).all()
+        else:
+            assert np.isnan(so).all()
+        d = json.loads(json.dumps(r.stats.to_dict(), allow_nan=False))
+        assert d["method"] == mode and d["comparisons"] == r.stats.comparisons == r.stats["comparisons"]
+        assert d["num_model_updates"] == (0 if mode == "bf" else 2) and d["config"]["band_px"] == 5.0
+        assert sum(r.stats.phase_queries) == len(f1)

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from guidedmatch.testing.scenes import make_scene
 
@@ -60,13 +61,30 @@ def test_ground_truth_marks_true_correct_and_perturbed_wrong(small_scene, rng):
     assert not small_scene.correct(p, q[::-1]).all()
 
 
-def test_scene_has_requested_roll_and_is_deterministic():
-    a = make_scene((320, 240), roll_deg=35.0, seed=7)
-    b = make_scene((320, 240), roll_deg=35.0, seed=7)
+def _measured_roll_deg(R, t, K):
+    """Roll of a camera about its optical axis, measured from its pose: the image direction of the world's y axis
+    (down) at the principal point, as an angle from the image's y axis."""
+    c = -R.T @ t
+    X = c + 7.0 * R[2]  # a point on the optical axis
+
+    def proj(P):
+        p = K @ (R @ P + t)
+        return p[:2] / p[2]
+
+    v = proj(X + 0.01 * np.array([0.0, 1.0, 0.0])) - proj(X)
+    return float(np.degrees(np.arctan2(-v[0], v[1])))
+
+
+@pytest.mark.parametrize("roll", [-20.0, 0.0, 35.0])
+def test_scene_has_requested_roll_and_is_deterministic(roll):
+    a = make_scene((160, 120), roll_deg=roll, seed=7)
+    b = make_scene((160, 120), roll_deg=roll, seed=7)
     np.testing.assert_array_equal(a.image2, b.image2)
-    # the rotation of camera 2 about its own optical axis: project the world up-vector and compare
+    np.testing.assert_allclose(a.R @ a.R.T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(a.R), 1.0, atol=1e-12)
-    assert a.roll_deg == 35.0
+    # the roll of camera 2 measured from its rendered pose (camera 1 is upright)
+    assert abs(_measured_roll_deg(a.R, a.t, a.K2) - roll) < 1e-9
+    assert abs(_measured_roll_deg(np.eye(3), np.zeros(3), a.K1)) < 1e-9
     assert np.linalg.matrix_rank(a.F) == 2
 
 

@@ -29,7 +29,10 @@ _EXPORTS = {
     "fit_spatial_order": "spatial_order", "SpatialOrderConfig": "spatial_order",
     "align_from_fundamental": "alignment",
     "two_view_geometry": "geometry", "TwoViewGeometry": "geometry", "VerdictConfig": "geometry",
-    # collections (issue 12)
+    # collections (COLMAP / hloc)
+    "open_source": "collection", "images_to_database": "collection", "exhaustive_pairs": "collection",
+    "sequential_pairs": "collection", "pairs_from_spec": "collection", "ColmapSink": "collection",
+    "H5MatchesSink": "collection",
     "match_collection": "collection.engine", "CollectionConfig": "collection.engine",
     "CollectionReport": "collection.engine",
     # errors

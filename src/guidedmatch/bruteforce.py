@@ -20,7 +20,6 @@ Among equal distances the lowest image-2 index is the nearest neighbour.
 """
 from __future__ import annotations
 
-import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -112,20 +111,26 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     return out, col
 
 
-@functools.lru_cache(maxsize=1)
-def _blas_controller():
-    """One ``threadpoolctl.ThreadpoolController`` per process (inspecting the loaded libraries takes ~2 ms).
+_CONTROLLER: list = [None, -1]  # [ThreadpoolController, len(sys.modules) when it was built]
 
-    SciPy's BLAS is loaded first (Numba's linear algebra and our geometry use it), so it is limited as well; a BLAS
-    loaded later by other code is not seen by this controller.
+
+def _blas_controller():
+    """A ``threadpoolctl.ThreadpoolController`` of the BLAS libraries loaded now (inspecting them takes ~2 ms).
+
+    Rebuilt only when modules were imported since the last call (a new extension module -- faiss, another SciPy
+    -- may bring its own BLAS, which a stale controller would leave multi-threaded). SciPy's BLAS is loaded first
+    (Numba's linear algebra and our geometry use it), so it is limited as well.
     """
     import importlib
-
-    from threadpoolctl import ThreadpoolController
+    import sys
 
     importlib.import_module("scipy.linalg")  # loads SciPy's OpenBLAS before the libraries are listed
+    if _CONTROLLER[0] is None or _CONTROLLER[1] != len(sys.modules):
+        from threadpoolctl import ThreadpoolController
 
-    return ThreadpoolController()
+        _CONTROLLER[0] = ThreadpoolController()
+        _CONTROLLER[1] = len(sys.modules)
+    return _CONTROLLER[0]
 
 
 class DenseKnn2:
@@ -247,11 +252,13 @@ def match_bruteforce(d1, d2, *, ratio: float | None = 0.8, mutual: bool = False,
     d1c, d2c, binary = check_descriptors(d1, d2)
     n1, n2 = len(d1c), len(d2c)
     (i1, s1, _i2, s2), col = knn2(d1c, d2c, memory_budget_mb=memory_budget_mb, want_column_best=mutual)
-    pairs, dist, _ = select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance,
-                                    mutual_best=col[0] if mutual else None)
+    pairs, dist, keep = select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance,
+                                       mutual_best=col[0] if mutual else None)
+    dropped_mutual = int(select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance)[2].sum() - keep.sum()) \
+        if mutual else 0
     dt = time.perf_counter() - t0
     stats = MatchStats(method="bf", comparisons=int(n1) * int(n2), time_s=dt, num_features=(n1, n2),
-                       metric="hamming" if binary else "l2",
+                       metric="hamming" if binary else "l2", dropped_by_mutual=dropped_mutual,
                        details=dict(ratio=ratio, mutual=mutual, max_distance=max_distance,
                                     block_rows=None if binary else block_rows(n2, memory_budget_mb)))
     return MatchResult(pairs, dist, stats)

@@ -19,6 +19,7 @@ import numpy as np
 from . import __version__
 from .config import MODES, MatcherConfig
 from .errors import ConfigError, GuidedMatchError, InputError, OutputError
+from .features import writable_folder
 
 OUTPUT_FORMATS = (".npz", ".csv", ".json")
 
@@ -45,26 +46,35 @@ def to_json(obj, **kw) -> str:
     return json.dumps(obj, default=json_default, **kw)
 
 
-def write_matches(path: Path, result, f1, f2) -> None:
-    """Write matches as ``.npz`` / ``.csv`` / ``.json`` (by suffix), atomically."""
+def write_matches(path: Path, result, f1, f2, geometry=None, verified=None) -> None:
+    """Write matches as ``.npz`` / ``.csv`` / ``.json`` (by suffix), atomically.
+
+    ``geometry``: the pair's :class:`~guidedmatch.geometry.TwoViewGeometry` (stored as ``stats["geometry"]``);
+    ``verified``: optional ``(M,) bool`` per match (``--keep-unverified``: a ``verified`` array / column).
+    """
     from .features import atomic_savez, atomic_write_text
 
     pairs, dist = result.pairs, result.distances
     p1 = f1.keypoints[pairs[:, 0]] if len(pairs) else np.zeros((0, 2))
     p2 = f2.keypoints[pairs[:, 1]] if len(pairs) else np.zeros((0, 2))
     suffix = path.suffix.lower()
-    stats_json = to_json(result.stats.to_dict())
+    stats = result.stats.to_dict()
+    if geometry is not None:
+        stats["geometry"] = geometry.to_dict()
+    stats_json = to_json(stats)
+    extra = {} if verified is None else {"verified": np.asarray(verified, bool)}
     if suffix == ".npz":
         atomic_savez(path, pairs=pairs, distances=dist, points1=p1, points2=p2,
-                     keypoints1=f1.keypoints, keypoints2=f2.keypoints, stats=np.array(stats_json))
+                     keypoints1=f1.keypoints, keypoints2=f2.keypoints, stats=np.array(stats_json), **extra)
     elif suffix == ".csv":
-        lines = ["i1,i2,x1,y1,x2,y2,distance"]
-        lines += [f"{a},{b},{x1:.3f},{y1:.3f},{x2:.3f},{y2:.3f},{d:.4f}"
-                  for (a, b), (x1, y1), (x2, y2), d in zip(pairs, p1, p2, dist)]
+        v = extra.get("verified")
+        lines = ["i1,i2,x1,y1,x2,y2,distance" + (",verified" if v is not None else "")]
+        lines += [f"{a},{b},{x1:.3f},{y1:.3f},{x2:.3f},{y2:.3f},{d:.4f}" + ("" if v is None else f",{int(v[k])}")
+                  for k, ((a, b), (x1, y1), (x2, y2), d) in enumerate(zip(pairs, p1, p2, dist))]
         atomic_write_text(path, "\n".join(lines) + "\n")
     elif suffix == ".json":
         atomic_write_text(path, to_json(dict(pairs=pairs, distances=dist, points1=p1, points2=p2,
-                                             stats=result.stats.to_dict()), indent=1))
+                                             stats=stats, **extra), indent=1))
     else:
         raise OutputError(f"unknown output format {suffix!r}: use .npz, .csv or .json")
 
@@ -87,49 +97,136 @@ def matcher_config(items: list[str] | None) -> MatcherConfig:
         raise ConfigError(f"bad --config: {exc}") from None
 
 
-def _detect_both(img1, img2, detector, max_features, options):
-    from .features import detect
+def _detect_both(img1, img2, detector, max_features, options, max_image_size=None, names=("IMG1", "IMG2")):
+    from .features import check_detect_memory, detect
 
-    f1 = detect(img1, detector, max_features, **options)
-    f2 = detect(img2, detector, max_features, **options)
-    for name, f in (("IMG1", f1), ("IMG2", f2)):
+    feats = []
+    for img, name in zip((img1, img2), names):
+        h, w = img.shape[:2]
+        if max_image_size and max(w, h) > max_image_size:
+            s = max_image_size / max(w, h)
+            w, h = max(1, round(w * s)), max(1, round(h * s))
+        check_detect_memory(w, h, detector, name)  # MemoryLimitError with a suggested --max-image-size
+        feats.append(detect(img, detector, max_features, max_image_size=max_image_size, **options))
+    for name, f in zip(names, feats):
         if len(f) == 0:
             raise InputError(f"no features detected in {name} ({detector}); the image may be blank or too small")
-    return f1, f2
+    return feats[0], feats[1]
+
+
+def _check_input_image(path: str, what: str) -> None:
+    from .errors import ImageReadError
+    from .features import ImageNotFoundError
+
+    p = Path(path)
+    if not p.exists():
+        raise ImageNotFoundError(f"{what} not found: {p}")
+    if p.is_dir():
+        raise ImageReadError(f"{what} is a folder, not an image: {p}")
+
+
+def fallback_lines(fallbacks) -> list[str]:
+    """Each distinct fallback once, with how often it occurred: ``"what: reason (x3)"``."""
+    counts: dict[tuple, int] = {}
+    for fb in fallbacks or ():
+        key = (fb.what, fb.reason) if hasattr(fb, "what") else (fb.get("what"), fb.get("reason"))
+        counts[key] = counts.get(key, 0) + 1
+    return [f"{w}: {r}" + (f" (x{n})" if n > 1 else "") for (w, r), n in counts.items()]
+
+
+def pair_geometry(result, f1, f2):
+    """The two-view verdict of a match result: ``result.geometry`` when the matcher provides it, else
+    :func:`~guidedmatch.geometry.two_view_geometry` decided on the matches made before any model was fitted
+    (``flags["phase"] == 0``: unguided nearest neighbours, so the test is not biased by the guidance) and reported
+    over all matches."""
+    geo = getattr(result, "geometry", None)
+    if geo is not None:
+        return geo
+    from .geometry import two_view_geometry
+
+    p = result.pairs
+    x1, x2 = f1.keypoints[p[:, 0]], f2.keypoints[p[:, 1]]
+    phase = result.flags.get("phase")
+    ev = np.ones(len(p), bool) if phase is None else np.asarray(phase) == 0
+    return two_view_geometry(x1[ev], x2[ev], f1.image_size, f2.image_size, report_on=(x1, x2))
+
+
+def _subset_result(result, keep: np.ndarray):
+    import dataclasses
+
+    return dataclasses.replace(result, pairs=result.pairs[keep], distances=result.distances[keep],
+                               flags={k: np.asarray(v)[keep] for k, v in result.flags.items()})
+
+
+def timed_match(f1, f2, mode, config=None, *, return_models=False):
+    """``match`` with its Numba kernels warmed up first (untimed); returns ``(match's return value,
+    matching_seconds, compile_seconds)`` -- ``match`` itself reports any compilation left in the timed run apart
+    from ``stats.time_s`` (``stats.details["jit_compile_s"]``)."""
+    from .jit import warm_up
+    from .matcher import match
+
+    compile_s = warm_up(f1, f2, mode, config)
+    out = match(f1, f2, mode, config, return_models=return_models)
+    st = (out[0] if return_models else out).stats
+    return out, st.time_s, compile_s + st.details.get("jit_compile_s", 0.0)
 
 
 # --------------------------------------------------------------------------- commands
 def cmd_match(args) -> int:
-    from .features import load_image
-    from .matcher import match
+    from .features import check_detector_options, check_output_path, load_image
 
-    # every check that needs no image comes first
+    # every argument and path problem is found here, before any image is read
     config = matcher_config(args.config)
-    detector_options = _parse_kv(args.detector_option, "--detector-option")
+    detector_options = check_detector_options(args.detector, _parse_kv(args.detector_option, "--detector-option"))
     if args.show_regions and not args.plot:
         raise ConfigError("--show-regions needs --plot OUT.png")
     if args.show_regions and args.mode == "bf":
         raise ConfigError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
     if args.output and Path(args.output).suffix.lower() not in OUTPUT_FORMATS:
         raise OutputError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
+    if args.keep_unverified and not args.output:
+        raise ConfigError("--keep-unverified needs -o OUT")
+    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg"):
+        raise OutputError(f"unknown plot format {Path(args.plot).suffix!r}: use .png, .pdf, .svg or .jpg")
+    _check_input_image(args.img1, "IMG1")
+    _check_input_image(args.img2, "IMG2")
+    if args.output:
+        check_output_path(args.output, "-o/--output")
+    if args.plot:
+        check_output_path(args.plot, "--plot")
 
     img1 = load_image(args.img1)
     img2 = load_image(args.img2)
     t0 = time.perf_counter()
-    f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, detector_options)
+    f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, detector_options, args.max_image_size,
+                          (args.img1, args.img2))
     t_det = time.perf_counter() - t0
-    result, models = match(f1, f2, args.mode, config, return_models=True)
+    (result, models), time_s, compile_s = timed_match(f1, f2, args.mode, config, return_models=True)
     st = result.stats
-    print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s)")
+    geo = pair_geometry(result, f1, f2)
+    scaled = ""
+    if args.max_image_size and max(max(f.image_size) for f in (f1, f2)) > args.max_image_size:
+        scaled = f", detected at long side <= {args.max_image_size} px, coordinates in original pixels"
+    print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s{scaled})")
     print(f"mode          : {args.mode}")
     print(f"matches       : {len(result)}")
+    if geo:
+        print(f"verdict       : verified ({geo.model}): {geo.num_inliers} of {len(result)} matches geometrically verified")
+    else:
+        label = "no overlap" if geo.verdict == "no-overlap" else "too few matches"
+        print(f"verdict       : {label}: 0 geometrically verified matches ({geo.reason})")
     print(f"comparisons   : {st.comparisons:,} ({100.0 * st.comparison_ratio:.2f} % of brute force)")
-    print(f"matching time : {st.time_s:.3f} s")
-    for fb in st.fallbacks:
-        print(f"fallback      : {fb.what}: {fb.reason}")
+    jit_note = f" (Numba compilation excluded: {compile_s:.1f} s, first run only)" if compile_s else ""
+    print(f"matching time : {time_s:.3f} s{jit_note}")
+    for line in fallback_lines(st.fallbacks):
+        print(f"fallback      : {line}")
+    inl = np.asarray(geo.inliers, bool) if len(geo.inliers) == len(result) else np.zeros(len(result), bool)
     if args.output:
-        write_matches(Path(args.output), result, f1, f2)
-        print(f"wrote         : {args.output}")
+        out = result if args.keep_unverified else _subset_result(result, inl)
+        write_matches(Path(args.output), out, f1, f2, geometry=geo, verified=inl if args.keep_unverified else None)
+        what = f"{len(out)} matches, {int(inl.sum())} verified" if args.keep_unverified else \
+            f"{len(out)} verified matches" + ("" if geo else "; --keep-unverified writes the unverified ones")
+        print(f"wrote         : {args.output} ({what})")
     if args.plot:
         from . import plots
 
@@ -138,8 +235,10 @@ def cmd_match(args) -> int:
                 raise InputError("--show-regions needs a guided mode whose models were fitted (see the fallbacks above)")
             plots.search_regions(args.plot, img1, img2, f1, f2, result, models)
         else:
-            plots.motion_field(args.plot, img1, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
-                               None, f"{args.mode}: {len(result)} matches")
+            verdict = (f"{geo.num_inliers} verified ({geo.model})" if geo else
+                       ("no overlap" if geo.verdict == "no-overlap" else "too few matches") + ": 0 verified")
+            plots.match_pair(args.plot, img1, img2, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
+                             inl, f"{args.mode}: {len(result)} matches, {verdict}")
         print(f"wrote         : {args.plot}")
     return 0
 
@@ -147,10 +246,12 @@ def cmd_match(args) -> int:
 def cmd_demo(args) -> int:
     from . import plots
     from .features import detect
-    from .matcher import match
+    from .features import check_output_path
     from .testing.scenes import make_scene
 
     out = Path(args.out)
+    for name in ("demo_matches.png", "demo_results.json"):
+        check_output_path(out / name, "--out")
     w, h = args.size
     print(f"[1/4] rendering a synthetic two-view scene {w}x{h}, camera roll {args.roll:g} deg (seed {args.seed})")
     scene = make_scene((w, h), roll_deg=args.roll, seed=args.seed)
@@ -161,12 +262,14 @@ def cmd_demo(args) -> int:
     print(f"[3/4] matching with {', '.join(MODES)}")
     rows, panels = [], []
     bf_comp = max(1, len(f1) * len(f2))
+    compile_s = 0.0
     for mode in MODES:
-        res = match(f1, f2, mode)
+        res, time_s, c_s = timed_match(f1, f2, mode)  # kernels warmed up first: no compilation in the times
+        compile_s += c_s
         p1, p2 = f1.keypoints[res.pairs[:, 0]], f2.keypoints[res.pairs[:, 1]]
         ok = scene.correct(p1, p2)
         rows.append(dict(mode=mode, comparisons=res.stats.comparisons, matches=len(res), true=int(ok.sum()),
-                         precision=float(ok.mean()) if len(ok) else float("nan"), time_s=res.stats.time_s,
+                         precision=float(ok.mean()) if len(ok) else float("nan"), time_s=time_s,
                          fallbacks=len(res.stats.fallbacks)))
         panels.append(dict(pts1=p1, pts2=p2, correct=ok,
                            title=f"{mode}: {int(ok.sum())}/{len(res)} correct, {100 * res.stats.comparisons / bf_comp:.2f} % comparisons"))
@@ -174,12 +277,15 @@ def cmd_demo(args) -> int:
     print(format_table(rows, bf_comp))
     print()
     print("true = GT within 3 px (exact scene geometry); comparisons = descriptor distances evaluated")
+    if compile_s:
+        print(f"Numba compilation (first run only, not in the times above): {compile_s:.1f} s")
     fig = plots.motion_field_panels(out / "demo_matches.png", scene.image1, panels,
                                     suptitle=f"guidedmatch demo: motion field on image 1 (green = correct, red = wrong), roll {args.roll:g} deg")
     from .features import atomic_write_text
 
     atomic_write_text(out / "demo_results.json", to_json(dict(rows=rows, features=(len(f1), len(f2)),
-                                                              size=(w, h), roll_deg=args.roll, seed=args.seed), indent=1))
+                                                              size=(w, h), roll_deg=args.roll, seed=args.seed,
+                                                              jit_compile_s=compile_s), indent=1))
     print(f"[4/4] wrote {fig} and {out / 'demo_results.json'}")
     return 0
 
@@ -197,7 +303,8 @@ def cmd_experiment(args) -> int:
     if args.which == "alignment":
         from .evaluation.alignment_sim import run_alignment_experiment
 
-        summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=Path(args.out), seed=args.seed, progress=True)
+        summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=writable_folder(args.out), seed=args.seed,
+                                           progress=True)
         if isinstance(summary, dict) and summary.get("table_md"):
             print(summary["table_md"])
         print(f"wrote results to {args.out}")
@@ -253,8 +360,13 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--max-features", type=_positive_int, default=None, help="keep at most N strongest features per image")
     m.add_argument("--detector-option", action="append", metavar="KEY=VALUE", help="OpenCV detector option, e.g. contrastThreshold=0.01 (repeatable)")
     m.add_argument("--config", action="append", metavar="KEY=VALUE", help="matcher config override, e.g. ratio=0.9 (repeatable)")
-    m.add_argument("-o", "--output", help="write matches to .npz, .csv or .json")
-    m.add_argument("--plot", help="write a motion-field PNG")
+    m.add_argument("--max-image-size", type=_positive_int, default=None, metavar="PX",
+                   help="detect on a copy downscaled to this long side (keypoints still in original pixels); "
+                        "needed for very large images (the memory check suggests a size)")
+    m.add_argument("-o", "--output", help="write the geometrically verified matches to .npz, .csv or .json")
+    m.add_argument("--keep-unverified", action="store_true",
+                   help="with -o: write every match, with a 'verified' flag, also when the images do not overlap")
+    m.add_argument("--plot", help="write a PNG of both images with the matches (inliers / outliers of the verdict)")
     m.add_argument("--show-regions", action="store_true", help="with --plot: draw the search regions of a few features instead")
     m.set_defaults(func=cmd_match)
 

@@ -63,6 +63,7 @@ from .bruteforce import DenseKnn2, check_descriptors, knn2, match_bruteforce
 from .config import MODES, MatcherConfig, Mode
 from .epipolar import map_points
 from .features import as_features
+from .jit import compile_monitor, exclude_compile_time
 from .results import (CandidateStats, Fallback, MatchResult, MatchStats, ModelUpdate, PhaseTimes, default_flags,
                       empty_pairs)
 from .validation import config_from
@@ -107,12 +108,11 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     config = config_from(MatcherConfig, config)
     f1, f2 = as_features(features1, "features1"), as_features(features2, "features2")
     d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors)
-    if not mode.guided:
-        res = _match_bf(config, f1, f2, d1, d2, binary)
-        return (res, None) if return_models else res
-    run = _GuidedRun(config, mode, f1, f2, d1, d2, binary)
-    res = run.run()
-    return (res, run.guidance) if return_models else res
+    with compile_monitor() as jit:  # a first call compiles Numba kernels: reported apart from time_s
+        run = None if not mode.guided else _GuidedRun(config, mode, f1, f2, d1, d2, binary)
+        res = _match_bf(config, f1, f2, d1, d2, binary) if run is None else run.run()
+    res = exclude_compile_time(res, jit.seconds)
+    return (res, run.guidance if run is not None else None) if return_models else res
 
 
 def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary) -> MatchResult:
@@ -273,6 +273,8 @@ def one_to_one(q: np.ndarray, j: np.ndarray, d: np.ndarray) -> np.ndarray:
     >>> one_to_one(np.array([0, 1, 2]), np.array([5, 5, 6]), np.array([2.0, 1.0, 3.0], np.float32))
     array([1, 2])
     """
+    if len(q) == 0:
+        return np.zeros(0, np.int64)
     o = np.lexsort((q, d, j))
     first = np.r_[True, np.diff(j[o]) != 0]
     return np.sort(o[first])
@@ -352,15 +354,18 @@ class _GuidedRun:
         self.no_strips = kernels.build_strips(np.zeros((0, 2)), 1.0)
 
     def fallback(self, what: str, reason: str) -> None:
+        """Report a degraded step (:class:`~guidedmatch.results.Fallback`)."""
         self.fallbacks.append(Fallback(what, reason, len(self.updates)))
 
     def account(self, nq: int, ncomp: int) -> None:
+        """Count ``nq`` queries and ``ncomp`` descriptor distances in the current phase (= updates done)."""
         k = len(self.updates)
         self.phase_queries[k] = self.phase_queries.get(k, 0) + int(nq)
         self.phase_comparisons[k] = self.phase_comparisons.get(k, 0) + int(ncomp)
 
     # ------------------------------------------------------------------------------------------ the method
     def run(self) -> MatchResult:
+        """The method: steps 1-8 of the module doc, in order (one method each, below in the same order)."""
         t_start = time.perf_counter()
         order = self.draw_order()
         got = _Collected()
@@ -459,13 +464,10 @@ class _GuidedRun:
         t0 = time.perf_counter()
         k1, k2 = self.f1.keypoints, self.f2.keypoints
         p1, p2 = k1[acc_i], k2[acc_j]
-        info: dict = dict(update=len(self.updates) + 1, num_correspondences=int(len(acc_i)))
-        F = inl = None
-        H1, H2 = np.eye(3), np.eye(3)
-        if self.mode.use_epi or self.mode.use_ia:
-            F, inl = self.fit_fundamental(p1, p2, info)
-        if self.mode.use_ia and F is not None:
-            H1, H2 = self.fit_alignment(F, p1[inl], p2[inl], info)
+        fr = self.fit_fundamental(p1, p2) if (self.mode.use_epi or self.mode.use_ia) else None
+        F, inl = (fr.F, np.asarray(fr.inliers, bool)) if fr is not None else (None, None)
+        al = self.fit_alignment(F, p1[inl], p2[inl]) if self.mode.use_ia and F is not None else None
+        H1, H2 = (np.asarray(al.H1, float), np.asarray(al.H2, float)) if al is not None else (np.eye(3), np.eye(3))
         H1, H2, pts1a, pts2a = self.aligned_points(H1, H2)
         F_aligned = x1_range = None
         if F is not None:
@@ -474,47 +476,54 @@ class _GuidedRun:
             F_aligned = transform_fundamental(F, H1, H2)
             xin = pts1a[acc_i[inl], 0]
             x1_range = (float(xin.min()), float(xin.max()))
-        so = self.fit_spatial_order(pts1a, pts2a, acc_i, acc_j, inl if F is not None else None, info) \
-            if self.mode.use_so else None
-        if not np.allclose(H2, np.eye(3)):
-            info["alignment_scale"] = _local_scale_range(H2, k2)
-        self.updates.append(ModelUpdate(**info))
+        so_fit = self.fit_spatial_order(pts1a, pts2a, acc_i, acc_j, inl) if self.mode.use_so else None
+        so = so_fit if so_fit is not None and so_fit.usable else None
+        foc = al.focal if al is not None else None
+        self.updates.append(ModelUpdate(
+            update=len(self.updates) + 1, num_correspondences=int(len(acc_i)),
+            F_inliers=int(fr.num_inliers) if fr is not None else None,
+            focal=(float(foc.f1), float(foc.f2)) if foc is not None else None,
+            focal_fallback=(bool(foc.fallback1), bool(foc.fallback2)) if foc is not None else None,
+            roll_deg=float(al.roll_deg) if al is not None else None, H2=H2 if al is not None else None,
+            alignment_scale=None if np.allclose(H2, np.eye(3)) else _local_scale_range(H2, k2),
+            so_usable=bool(so_fit.usable) if so_fit is not None else None,
+            n_good=float(so_fit.n_good) if so_fit is not None else None,
+            k_hat=float(so_fit.k_hat) if so_fit is not None else None,
+            window1_x=tuple(map(float, so_fit.window1_x)) if so_fit is not None else None,
+            window2_x=tuple(map(float, so_fit.window2_x)) if so_fit is not None else None))
         self.strip_cache = {}
         self.timing["model_fit_s"] += time.perf_counter() - t0
         return GuidanceModels(F, F_aligned, x1_range, H1, H2, so, pts1a, pts2a, float(self.c.band_px),
                               self.c.outside_window)
 
-    def fit_fundamental(self, p1, p2, info: dict):
-        """§III-D: F by OpenCV USAC (``ransac_method``); returns ``(F, inlier mask)`` or ``(None, None)`` (reported)."""
+    def fit_fundamental(self, p1, p2):
+        """§III-D: F by OpenCV USAC (``ransac_method``): the :class:`~guidedmatch.epipolar.FundamentalResult`, or
+        None when it fails (reported)."""
         from . import epipolar
 
         c = self.c
         fr = epipolar.estimate_fundamental(p1, p2, method=c.ransac_method, threshold=c.ransac_threshold, seed=c.seed)
-        if not fr:
-            self.fallback("fundamental", f"F estimation failed: {fr.reason}; "
-                          + ("spatial order only" if self.mode.use_so else "no epipolar guidance"))
-            return None, None
-        info["F_inliers"] = int(fr.num_inliers)
-        return fr.F, np.asarray(fr.inliers, bool)
+        if fr:
+            return fr
+        self.fallback("fundamental", f"F estimation failed: {fr.reason}; "
+                      + ("spatial order only" if self.mode.use_so else "no epipolar guidance"))
+        return None
 
-    def fit_alignment(self, F, p1_in, p2_in, info: dict):
-        """§III-E: alignment homographies ``(H1, H2)`` from F (Bougnoux focal, pose, ``alignment`` approach);
-        identity when it fails (reported)."""
+    def fit_alignment(self, F, p1_in, p2_in):
+        """§III-E: the alignment (``H1``, ``H2``, Bougnoux focal, roll) from F and its inliers for the ``alignment``
+        approach, or None when it fails (reported; the run then matches in original coordinates)."""
         from . import alignment
 
         al = alignment.align_from_fundamental(F, p1_in, p2_in, self.f1.image_size, self.f2.image_size,
                                               approach=self.c.alignment)
         if not al:
             self.fallback("alignment", f"alignment failed: {al.reason}; matching in original coordinates")
-            return np.eye(3), np.eye(3)
-        H1, H2 = np.asarray(al.H1, float), np.asarray(al.H2, float)
+            return None
         foc = al.focal
-        info.update(focal=(float(foc.f1), float(foc.f2)), focal_fallback=(bool(foc.fallback1), bool(foc.fallback2)),
-                    roll_deg=float(al.roll_deg), H2=H2)
         for k, (fb, why) in enumerate(((foc.fallback1, foc.reason1), (foc.fallback2, foc.reason2)), 1):
             if fb:
                 self.fallback(f"focal{k}", f"Bougnoux focal of image {k} unusable ({why}); f = w + h used")
-        return H1, H2
+        return al
 
     def aligned_points(self, H1, H2):
         """Keypoints in the aligned frame; identity (reported) when a homography sends a keypoint to infinity."""
@@ -528,22 +537,19 @@ class _GuidedRun:
             return np.eye(3), np.eye(3), k1, k2
         return H1, H2, pts1a, pts2a
 
-    def fit_spatial_order(self, pts1a, pts2a, acc_i, acc_j, likely_correct, info: dict):
-        """§III-B, §III-C: the spatial-order model on aligned x (the F inliers measure its order noise); None when
-        unusable (reported)."""
+    def fit_spatial_order(self, pts1a, pts2a, acc_i, acc_j, likely_correct):
+        """§III-B, §III-C: the spatial-order model on aligned x (``likely_correct``: the F inliers, which measure its
+        order noise); an unusable model is reported (and not used)."""
         from . import spatial_order
 
         c = self.c
         so = spatial_order.fit_spatial_order(
             pts1a[acc_i, 0], pts2a[acc_j, 0], spatial_order.SpatialOrderConfig(threshold=c.so_threshold, overlap=c.so_overlap),
             y1=pts1a[acc_i, 1], y2=pts2a[acc_j, 1], likely_correct=likely_correct)
-        info.update(so_usable=bool(so.usable), n_good=float(so.n_good), k_hat=float(so.k_hat),
-                    window1_x=tuple(map(float, so.window1_x)), window2_x=tuple(map(float, so.window2_x)))
-        if so.usable:
-            return so
-        self.fallback("spatial_order", f"spatial-order model unusable ({so.reason}); "
-                      + ("epipolar band only" if likely_correct is not None else "unguided"))
-        return None
+        if not so.usable:
+            self.fallback("spatial_order", f"spatial-order model unusable ({so.reason}); "
+                          + ("epipolar band only" if likely_correct is not None else "unguided"))
+        return so
 
     # ------------------------------------------------------------------------------------ steps 4-5: guided
     def strips(self, m: GuidanceModels, lines: np.ndarray, axis: int) -> kernels.StripIndex:
@@ -677,6 +683,7 @@ class _GuidedRun:
         return out
 
     def result(self, t_start, models, q, j, d, flags, dropped_recheck, dropped_o2o, dropped_mutual) -> MatchResult:
+        """Step 8: the MatchResult with its :class:`~guidedmatch.results.MatchStats` (every count of the run)."""
         n1, n2 = len(self.d1), len(self.d2)
         nphase = len(self.updates) + 1
         phase_comparisons = tuple(self.phase_comparisons.get(k, 0) for k in range(nphase))

@@ -158,7 +158,8 @@ class MatchStats:
         timing: :class:`PhaseTimes` of a guided run (None for brute force and peers).
         updates: one :class:`ModelUpdate` per model refit, in order.
         candidates_per_query: :class:`CandidateStats` over every query matched (unguided ones count N2).
-        queries_matched_against: image-1 features that were compared with any image-2 feature.
+        queries_matched_against: image-1 features searched (unguided or in a region, including regions found empty);
+            the others were dropped outside ω*.
         dropped_outside_overlap: image-1 features not matched because they lie outside ω* (§III-B.2).
         queries_without_candidates: queries whose search region held no image-2 feature.
         band_only_outside_window: queries outside ω* matched in the epipolar band only (``outside_window="band"``).

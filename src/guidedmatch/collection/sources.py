@@ -491,26 +491,6 @@ def _list_images(image_dir: Path) -> list[str]:
     return names
 
 
-def _detect_scaled(img: np.ndarray, detector: str, max_features, max_image_size, options) -> Features:
-    """Detect on ``img`` downscaled so its longer side is <= ``max_image_size``; keypoints in original pixels."""
-    import cv2
-
-    from ..features import detect
-
-    h, w = img.shape[:2]
-    if max_image_size and max(w, h) > max_image_size:
-        s = max_image_size / max(w, h)
-        wr, hr = max(1, round(w * s)), max(1, round(h * s))
-        small = cv2.resize(img, (wr, hr), interpolation=cv2.INTER_AREA)
-        f = detect(small, detector, max_features, **options)
-        sx, sy = w / wr, h / hr
-        # pixel centres: x_small + 0.5 covers (x + 0.5) / s in the original (OpenCV convention)
-        kp = (f.keypoints + 0.5) * np.array([sx, sy]) - 0.5
-        scales = None if f.scales is None else f.scales * np.float32((sx + sy) / 2)
-        return Features(kp, f.descriptors, (w, h), f.kind, scales=scales, angles=f.angles, responses=f.responses)
-    return detect(img, detector, max_features, **options)
-
-
 def _colmap_keypoints(f: Features) -> np.ndarray:
     """``(N, 4) float32``: COLMAP x, y (+0.5), scale (= OpenCV diameter / 2), orientation (radians)."""
     n = len(f)
@@ -543,7 +523,8 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
 
     Images (``IMAGE_EXTENSIONS``, searched recursively, names relative to ``image_dir`` with ``/``) are
     detected with :func:`guidedmatch.features.detect`; with ``max_image_size`` the image is first downscaled so
-    its longer side is at most that (cv2.INTER_AREA) and keypoints are mapped back to original pixels. Each
+    its longer side is at most that (cv2.INTER_AREA) and keypoints are mapped back to original pixels; an image
+    whose estimated detection peak exceeds the available memory is refused (MemoryLimitError naming a size). Each
     image gets, like ``colmap feature_extractor``: a camera (``camera_model``, focal prior ``1.2 max(w, h)`` as
     COLMAP assumes without EXIF, principal point at the centre; one shared camera with ``single_camera``), a
     trivial rig and frame, 4-column keypoints in COLMAP's convention (x + 0.5, y + 0.5, scale, orientation) and
@@ -561,7 +542,7 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
     """
     import pycolmap
 
-    from ..features import load_image
+    from ..features import detect, load_image
     from ..validation import check_bool, check_choice, check_number
 
     check_choice("images_to_database", "detector", detector, DETECTORS)
@@ -622,7 +603,7 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
             except (ValueError, FileNotFoundError) as exc:
                 raise ImageReadError(f"{image_dir / name}: {exc}") from None
             h, w = img.shape[:2]
-            f = _detect_scaled(img, detector, max_features, max_image_size, options)
+            f = detect(img, detector, max_features, max_image_size=max_image_size, **options)  # + memory guard
             kp, desc = _colmap_keypoints(f), _colmap_descriptors(f)
             if shared is not None and (shared.width, shared.height) != (w, h):
                 raise InputError(f"single_camera: {name} is {w}x{h} but the shared camera is "

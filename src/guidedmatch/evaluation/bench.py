@@ -414,12 +414,13 @@ def run_benchmarks(which: str, *, data=None, out="reports", quick: bool = False,
 
     ``data``: data folder (default ``$GUIDEDMATCH_DATA`` or ``../shared/data``); ``quick``: a few pairs per set;
     ``repeats``: timing repeats per method (default 1 with ``quick``, else 3). Raises
-    :class:`~guidedmatch.errors.ConfigError` for an unknown benchmark and :class:`~guidedmatch.errors.InputError`
-    when the data is missing, before any work.
+    :class:`~guidedmatch.errors.ConfigError` for an unknown benchmark, :class:`~guidedmatch.errors.InputError`
+    when the data is missing and :class:`~guidedmatch.errors.OutputError` when ``out`` cannot be written, before
+    any work.
     """
     from ..datasets import data_root
     from ..errors import ConfigError, InputError
-    from ..features import DETECTORS
+    from ..features import DETECTORS, writable_folder
     from .meta import run_metadata, write_json
 
     if which not in BENCHMARKS:
@@ -428,10 +429,11 @@ def run_benchmarks(which: str, *, data=None, out="reports", quick: bool = False,
         raise ConfigError(f"unknown detector {detector!r}; choose one of {', '.join(DETECTORS)}")
     parts = ("oxford", "synthetic", "real", "alignment") if which == "all" else (which,)
     root = data_root(data)
-    if root is None and any(w != "alignment" for w in parts):
-        raise InputError("no evaluation data: pass --data DIR or set GUIDEDMATCH_DATA (expects oxford/, pose_pairs/, photos/)")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if (root is None or not root.is_dir()) and any(w != "alignment" for w in parts):
+        where = "" if root is None else f" ({root} is not a folder)"
+        raise InputError(f"no evaluation data{where}: pass --data DIR or set GUIDEDMATCH_DATA "
+                         "(expects oxford/, pose_pairs/, photos/)")
+    out = writable_folder(out)
     t0 = time.perf_counter()
     repeats = repeats or (1 if quick else 3)
     peers = available_peers()
