@@ -506,3 +506,26 @@ def test_cli_hloc_round_trip_equals_in_memory_matches(views, tmp_path):
             np.testing.assert_array_equal(got, res.pairs[np.argsort(res.pairs[:, 0])])
     r2 = run_cli("hloc", tmp_path / "feats.h5", tmp_path / "pairs.txt", tmp_path / "m.h5", "--log", "none")
     assert r2.returncode == 0 and "3 skipped" in r2.stdout, r2.stdout + r2.stderr
+
+
+def test_cli_geometry_colmap_runs_colmaps_verification(rendered_db, tmp_path):
+    """--geometry colmap: raw matches from the engine, then pycolmap's verification writes the two-view geometries;
+    the matches are the same as with our geometry."""
+    import shutil
+
+    root, mv = rendered_db
+    a, b = tmp_path / "a.db", tmp_path / "b.db"
+    shutil.copy(root / "fresh.db", a)
+    shutil.copy(root / "fresh.db", b)
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("".join(f"{mv.names[i]} {mv.names[i + 1]}\n" for i in range(3)))
+    r = run_cli("colmap", a, "--pairs", pairs, "--geometry", "colmap", "--workers", "0", "--log", "none")
+    assert r.returncode == 0, r.stderr
+    assert "verified   : 3 pairs" in r.stdout
+    r = run_cli("colmap", b, "--pairs", pairs, "--workers", "0", "--log", "none")
+    assert r.returncode == 0, r.stderr
+    ra, rb = db_rows(a), db_rows(b)
+    assert set(ra) == set(rb) and len(ra) == 3
+    for k in ra:
+        assert ra[k][0] == rb[k][0]  # same matches
+        assert ra[k][1] is not None and ra[k][1][0] in (2, 3, 4, 5, 6) and len(ra[k][1][1]) > 0  # COLMAP verified
