@@ -45,8 +45,9 @@ Memory bound
   size. Plus the pair list itself (names, ~200 bytes per pair), the sink's done-pair set and at most
   ``report_max_pairs`` per-pair dicts kept in the report (all of them go to ``log_path``).
 * Each worker process (and this process when in-process): the image cache, at most ``cache_mb`` MB of loaded
-  images (estimated as their array bytes: keypoints 16 B + descriptors 4 B x D per feature, plus the prepared
-  state's reported size), but never fewer than the two images of the pair being matched; plus the matcher's
+  images (estimated as their array bytes: keypoints 16 B + descriptors 4 B x D per feature, plus, with
+  ``guidedmatch.prepared``, the prepared image's arrays and 4 B x D for its approximate index: ~1 KB per SIFT
+  feature in all, ~8 MB per 8192-feature image, so the 1024 MB default holds ~120 such images), but never fewer than the two images of the pair being matched; plus the matcher's
   working memory for one pair.
 
 Resume and failures
@@ -235,6 +236,16 @@ def _nbytes(obj) -> int:
     return total
 
 
+def _prepared_nbytes(prep) -> int:
+    """Estimated bytes of a prepared image beyond its features: its own arrays (kernel-form descriptors, norms) plus
+    a float32 copy of the descriptors for the approximate index it may build (faiss IVF-Flat stores the vectors)."""
+    total = sum(v.nbytes for k, v in vars(prep).items() if isinstance(v, np.ndarray))
+    f = getattr(prep, "features", None)
+    if f is not None and f.descriptors.dtype != np.uint8:
+        total += 4 * f.descriptors.size
+    return total
+
+
 class _ImageCache:
     """Per-process LRU of loaded (prepared) images of one run, bounded by ``cache_bytes`` (module doc)."""
 
@@ -258,8 +269,8 @@ class _ImageCache:
                 return item
             t0 = time.perf_counter()
             feats = self.source.load(name)
-            prepared = feats if self.prepare is None else self.prepare(feats, self.spec.matcher)
-            item = _CachedImage(feats, prepared, _nbytes(feats) + (0 if prepared is feats else _nbytes(prepared)))
+            prepared = feats if self.prepare is None else self.prepare(feats)
+            item = _CachedImage(feats, prepared, _nbytes(feats) + (0 if prepared is feats else _prepared_nbytes(prepared)))
             self.load_s += time.perf_counter() - t0
             self.loads += 1
             self.items[name] = item
