@@ -46,8 +46,8 @@ Memory bound
   ``report_max_pairs`` per-pair dicts kept in the report (all of them go to ``log_path``).
 * Each worker process (and this process when in-process): the image cache, at most ``cache_mb`` MB of loaded
   images (estimated as their array bytes: keypoints 16 B + descriptors 4 B x D per feature, plus, with
-  ``guidedmatch.prepared``, the prepared image's arrays and 4 B x D for its approximate index: ~1 KB per SIFT
-  feature in all, ~8 MB per 8192-feature image, so the 1024 MB default holds ~120 such images), but never fewer than the two images of the pair being matched; plus the matcher's
+  ``guidedmatch.prepared``, the prepared image's arrays and 4 B x D for its approximate index: ~1.2 KB per SIFT
+  feature in all, ~10 MB per 8192-feature image, so the 1024 MB default holds ~100 such images), but never fewer than the two images of the pair being matched; plus the matcher's
   working memory for one pair.
 
 Resume and failures
