@@ -352,12 +352,13 @@ def db_rows(path) -> dict:
     try:
         names = {im.image_id: im.name for im in db.read_all_images()}
         out = {}
-        for pid in db.read_num_matches()[0]:
-            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
-            tvg = db.read_two_view_geometry(i1, i2) if db.exists_two_view_geometry(i1, i2) else None
-            out[frozenset((names[i1], names[i2]))] = (
-                np.asarray(db.read_matches(i1, i2)).tolist(),
-                None if tvg is None else (int(tvg.config), np.asarray(tvg.inlier_matches).tolist()))
+        for i1 in names:  # every image pair (the bulk readers skip rows with zero matches)
+            for i2 in names:
+                if i1 < i2 and db.exists_matches(i1, i2):
+                    tvg = db.read_two_view_geometry(i1, i2) if db.exists_two_view_geometry(i1, i2) else None
+                    out[frozenset((names[i1], names[i2]))] = (
+                        np.asarray(db.read_matches(i1, i2)).tolist(),
+                        None if tvg is None else (int(tvg.config), np.asarray(tvg.inlier_matches).tolist()))
         return out
     finally:
         db.close()
