@@ -144,16 +144,21 @@ print(len(recs), 0 if best is None else best.num_reg_images(), time.perf_counter
     return dict(models=int(n_models), registered=int(registered), time_s=float(t))
 
 
-def run(data: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling: bool = True) -> dict:
+def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling: bool = True, note: str = "",
+        map_colmap_sets=("default",)) -> dict:
     from .meta import run_metadata, write_json
 
-    image_dir = data / DATA_REL
     if not image_dir.is_dir():
         raise FileNotFoundError(f"Herz-Jesus-P8 images not found: {image_dir}")
     work.mkdir(parents=True, exist_ok=True)
-    result = dict(meta=run_metadata(), threads=THREADS, images=str(image_dir), sets={},
+    result = dict(meta=run_metadata(), threads=THREADS, images=str(image_dir), sets={}, run_note=note,
                   note="machine shared with other jobs while running: wall times are noisy")
+    old = out_dir / "collection.json"
+    if old.exists():  # keep the sets of an earlier run that this one does not redo
+        with open(old) as fh:
+            result["sets"] = {k: v for k, v in json.load(fh).get("sets", {}).items() if k not in sets}
     for name in sets:
+        map_colmap = name in map_colmap_sets
         print(f"== {name}: extracting", flush=True)
         base = work / f"{name}.db"
         if base.exists():
@@ -185,9 +190,15 @@ def run(data: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling:
         row["rerun"] = ours(odb, work / f"{name}-rerun.jsonl")
         print(f"== {name}: mapping", flush=True)
         row["mapping_ours"] = mapping(odb, image_dir, work / f"{name}-sparse-ours")
-        row["mapping_colmap"] = mapping(cdb, image_dir, work / f"{name}-sparse-colmap")
+        if map_colmap:
+            row["mapping_colmap"] = mapping(cdb, image_dir, work / f"{name}-sparse-colmap")
         if scaling:
+            s = row["ours"]["summary"]
+            auto = "0" if s["backend"] == "in-process" else str(s["workers"])
             for w in ("0", "1", "2"):
+                if w == auto:  # the auto run was this configuration: not run twice
+                    row[f"workers_{w}"] = dict(row["ours"], same_as="auto")
+                    continue
                 print(f"== {name}: --workers {w}", flush=True)
                 wdb = copy(f"w{w}")
                 row[f"workers_{w}"] = ours(wdb, work / f"{name}-w{w}.jsonl", "--workers", w)
@@ -213,16 +224,16 @@ def markdown(result: dict) -> str:
              "included). Verified inliers: sum of the inlier matches of all two-view geometries in the database. "
              "Numba's on-disk cache was warmed first (one pair, untimed: "
              f"{result['sets'][next(iter(result['sets']))]['warmup']['wall_s']:.1f} s); a first-ever run adds that "
-             "compilation once.", "",
+             "compilation once." + (f" Code: {result['run_note']}." if result.get("run_note") else ""), "",
              "| features | method | wall (s) | inner (s) | backend | verified pairs | verified inliers | "
              "registered (mapper) |", "|---|---|---|---|---|---|---|---|"]
     for name, row in result["sets"].items():
         f = row["features"]
         feat = f"{name} ({f['features_mean']:.0f}/image)"
         c, o = row["colmap"], row["ours"]
+        reg_c = f"{row['mapping_colmap']['registered']}/8" if "mapping_colmap" in row else "not run"
         lines.append(f"| {feat} | COLMAP match_exhaustive | {c['wall_s']:.2f} | {c['inner_s']:.2f} | 2 threads | "
-                     f"{c['db']['verified_pairs']} | {c['db']['verified_inliers']} | "
-                     f"{row['mapping_colmap']['registered']}/8 |")
+                     f"{c['db']['verified_pairs']} | {c['db']['verified_inliers']} | {reg_c} |")
         s = o.get("summary", {})
         lines.append(f"| {feat} | guidedmatch colmap (auto) | {o['wall_s']:.2f} | {s.get('wall_s', 0):.2f} | "
                      f"{s.get('backend')} ({s.get('workers')}) | {o['db']['verified_pairs']} | "
@@ -233,7 +244,8 @@ def markdown(result: dict) -> str:
         for w in ("0", "1", "2"):
             if f"workers_{w}" in row:
                 x = row[f"workers_{w}"]
-                lines.append(f"| {feat} | guidedmatch colmap --workers {w} | {x['wall_s']:.2f} | "
+                same = " (= the auto run)" if x.get("same_as") else ""
+                lines.append(f"| {feat} | guidedmatch colmap --workers {w}{same} | {x['wall_s']:.2f} | "
                              f"{x['summary'].get('wall_s', 0):.2f} | {x['summary'].get('backend')} | "
                              f"{x['db']['verified_pairs']} | {x['db']['verified_inliers']} | - |")
     lines += ["", "| features | ours / COLMAP time | ours / COLMAP verified inliers | 2 / 1 workers (wall) | "
@@ -278,14 +290,16 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m guidedmatch.evaluation.bench_collection", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default=os.environ.get("GUIDEDMATCH_DATA", "/work/shared/data"))
+    p.add_argument("--images", default=None, help=f"image folder (default DATA/{DATA_REL})")
     p.add_argument("--out", default="benchmarks/results/collection")
     p.add_argument("--work", default="/tmp/guidedmatch-bench-collection", help="databases (not in the repo)")
     p.add_argument("--sets", default="default,50k")
     p.add_argument("--no-scaling", action="store_true", help="skip the --workers 0/1/2 runs")
+    p.add_argument("--note", default="", help="what code ran (recorded in the JSON and the table)")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    res = run(Path(a.data), out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling)
+    res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note)
     print(markdown(res))
     return 0
 
