@@ -266,6 +266,50 @@ def test_plan_tasks_covers_each_pair_once_grouped_by_anchor(raw, chunk):
         assert all(len(t) == chunk for t in list(tasks)[:-1])  # only an anchor's last task is short
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 6), st.integers(0, 6)).filter(lambda p: p[0] != p[1]), max_size=30,
+                unique_by=lambda p: frozenset(p)), st.integers(1, 4), st.integers(1, 3), st.randoms(use_true_random=False))
+def test_queue_hands_out_every_task_once_and_suspects_only_when_idle(raw, chunk, per_anchor, rnd):
+    """_Queue under a random completion order: every planned pair is handed out exactly once, at most per_anchor
+    tasks of an anchor are in flight while another anchor still has a free slot, suspects wait for an idle cluster."""
+    from guidedmatch.collection.engine import _Queue
+
+    names = [f"im{i}" for i in range(7)]
+    pairs = [(names[a], names[b]) for a, b in raw]
+    q = _Queue(plan_tasks(pairs, names, chunk), per_anchor)
+    q.suspects.append([("x", "y")])
+    inflight, seen = [], []
+    while q or inflight:
+        got = q.take(idle=not inflight) if q else None
+        if got is None:
+            anchor, task = inflight.pop(rnd.randrange(len(inflight)))
+            q.finished(anchor)
+            continue
+        anchor, task = got
+        if task == [("x", "y")]:
+            assert not inflight  # a suspect runs alone
+        elif anchor is not None and q.inflight[anchor] > per_anchor:  # over its share only when all others are full
+            assert all(q.inflight[a] >= per_anchor for a in q.plan)
+        seen += task
+        inflight.append((anchor, task))
+        if rnd.random() < 0.5 and inflight:
+            a, t = inflight.pop(rnd.randrange(len(inflight)))
+            q.finished(a)
+    assert sorted(seen) == sorted(pairs + [("x", "y")])
+    assert not q.inflight  # every anchor's bookkeeping closed
+
+
+def test_report_keeps_at_most_report_max_pairs_the_log_keeps_all(views, tmp_path):
+    src, sink = DictSource(views), ListSink()
+    log = tmp_path / "log.jsonl"
+    rep = match_collection(src, all_pairs(src.names()), sink, dict(progress=False, report_max_pairs=3,
+                                                                  log_path=str(log)))
+    assert rep.done == 10 and len(rep.per_pair) == 3
+    assert sum(1 for line in log.read_text().splitlines() if '"event": "pair"' in line) == 10
+    d = rep.to_dict()
+    assert json.loads(json.dumps(d))["done"] == 10
+
+
 # ------------------------------------------------------------------------------------------------ local cluster
 @pytest.fixture(scope="module")
 def cluster_client():
