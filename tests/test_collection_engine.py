@@ -574,3 +574,29 @@ def test_cli_geometry_colmap_runs_colmaps_verification(rendered_db, tmp_path):
     for k in ra:
         assert ra[k][0] == rb[k][0]  # same matches
         assert ra[k][1] is not None and ra[k][1][0] in (2, 3, 4, 5, 6) and len(ra[k][1][1]) > 0  # COLMAP verified
+
+
+def test_cli_scheduler_address_attaches_to_a_running_cluster(rendered_db, cluster_client, tmp_path):
+    """`--scheduler ADDRESS`: the pairs run on the running cluster's workers (shared storage: same machine), the
+    command does not stop the cluster, and the result equals the in-process one."""
+    import shutil
+
+    root, mv = rendered_db
+    a, b = tmp_path / "a.db", tmp_path / "b.db"
+    shutil.copy(root / "fresh.db", a)
+    shutil.copy(root / "fresh.db", b)
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("".join(f"{mv.names[i]} {mv.names[i + 1]}\n" for i in range(4)))
+    address = cluster_client.scheduler.address
+    r = run_cli("colmap", a, "--pairs", pairs, "--scheduler", address, "--log", tmp_path / "a.jsonl")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((tmp_path / "a.jsonl").read_text().splitlines()[-1])
+    assert summary["backend"] == "scheduler" and summary["done"] == 4
+    workers = {json.loads(x)["worker"] for x in (tmp_path / "a.jsonl").read_text().splitlines()[:-1]}
+    assert workers <= set(cluster_client.scheduler_info()["workers"])
+    assert len(cluster_client.scheduler_info()["workers"]) == 2  # still running
+    r = run_cli("colmap", b, "--pairs", pairs, "--workers", "0", "--log", "none")
+    assert r.returncode == 0, r.stderr
+    assert db_rows(a) == db_rows(b)
+    r = run_cli("colmap", a, "--scheduler", "tcp://127.0.0.1:9", "--log", "none", "--no-progress")  # nobody listens
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "cannot connect" in r.stderr, r.stderr

@@ -768,18 +768,11 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     queue = _Queue(plan_tasks(todo, names, cfg.chunk_pairs), cfg.tasks_per_worker)
     from tqdm.auto import tqdm
 
-    log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
-    bar = tqdm(total=len(todo), unit="pair", desc="matching pairs", disable=not cfg.progress, file=sys.stderr,
-               dynamic_ncols=True, smoothing=0.05)
-    writer = _Writer(sink, cfg, queue, bar, log)
     startup_s = shutdown_s = 0.0
-    cluster = own_client = None
+    cluster = own_client = use = None
+    log = bar = None
     try:
-        if backend == "in-process":
-            facts = _run_inprocess(source, spec, queue, writer)
-        elif backend == "none":
-            facts = dict(cache_hits=0, image_loads=0, workers=0)
-        else:
+        if backend in ("local-cluster", "scheduler", "client"):  # before the progress bar and the log
             t0 = time.perf_counter()
             if backend == "local-cluster":
                 cluster, own_client = _start_local_cluster(n_workers)
@@ -788,20 +781,31 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                 from distributed import Client
 
                 try:
-                    own_client = use = Client(cfg.scheduler, timeout="20s", set_as_default=False)
+                    own_client = use = Client(cfg.scheduler, timeout="10s", set_as_default=False)
                 except (OSError, TimeoutError) as exc:
                     raise GuidedMatchError(f"cannot connect to the dask scheduler at {cfg.scheduler}: {exc}") from None
             else:
                 use = client
             startup_s = time.perf_counter() - t0
-            bar.set_postfix_str(f"{backend}", refresh=False)
+        log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
+        bar = tqdm(total=len(todo), unit="pair", desc="matching pairs", disable=not cfg.progress, file=sys.stderr,
+                   dynamic_ncols=True, smoothing=0.05)
+        if use is not None:
+            bar.set_postfix_str(backend, refresh=False)
+        writer = _Writer(sink, cfg, queue, bar, log)
+        if backend == "in-process":
+            facts = _run_inprocess(source, spec, queue, writer)
+        elif backend == "none":
+            facts = dict(cache_hits=0, image_loads=0, workers=0)
+        else:
             facts = _run_dask(use, source, spec, queue, writer, cfg.tasks_per_worker)
     except BaseException:
         if log is not None:
             log.close()
         raise
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
         t0 = time.perf_counter()
         if own_client is not None:
             with contextlib.suppress(Exception):
