@@ -315,6 +315,14 @@ def cmd_experiment(args) -> int:
 def cmd_bench(args) -> int:
     from .evaluation.bench import run_benchmarks
 
+    if args.which == "collection":  # issue 12: guidedmatch colmap vs pycolmap.match_exhaustive on Herz-Jesus-P8
+        from .datasets import data_root
+        from .evaluation.bench_collection import DATA_REL, main as bench_collection
+
+        root = data_root(args.data)
+        if root is None or not (root / DATA_REL).is_dir():
+            raise InputError(f"no Herz-Jesus-P8 images under {root}/{DATA_REL}: pass --data DIR or set GUIDEDMATCH_DATA")
+        return bench_collection(["--data", str(root), "--out", str(Path(args.out) / "collection")])
     run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
                    detector=args.detector, seed=args.seed)
     return 0
@@ -533,7 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="reproduce the paper's tables side by side with the paper and peers",
                        description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
-    b.add_argument("which", choices=BENCHMARKS)
+    b.add_argument("which", choices=BENCHMARKS + ("collection",))
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
