@@ -34,6 +34,8 @@ _EXPORTS = {
     "open_source": "collection", "images_to_database": "collection", "exhaustive_pairs": "collection",
     "sequential_pairs": "collection", "pairs_from_spec": "collection", "ColmapSink": "collection",
     "H5MatchesSink": "collection",
+    "match_collection": "collection.engine", "CollectionConfig": "collection.engine",
+    "CollectionReport": "collection.engine",
     # errors
     "GuidedMatchError": "errors", "ConfigError": "errors", "InputError": "errors", "ImageReadError": "errors",
     "OutputError": "errors", "DatabaseError": "errors", "DatabaseBusyError": "errors", "MemoryLimitError": "errors",
