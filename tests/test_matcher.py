@@ -5,7 +5,7 @@ import pytest
 
 from guidedmatch.bruteforce import match_bruteforce
 from guidedmatch.features import Features, detect
-from guidedmatch.matcher import MODES, MatcherConfig, match
+from guidedmatch.matcher import MODES, MatcherConfig, draw_order, match
 
 # small scene: fewer correspondences per update; auto_bf off (below 2000 features guidance is replaced by BF)
 FAST = MatcherConfig(update_every=60, num_updates=2, auto_bf=False)
@@ -298,21 +298,48 @@ def test_pure_rotation_scene_is_H():
         assert r.geometry.H is not None and r.geometry.num_inliers > 0.8 * len(r)
 
 
+# unguided start: ski-rental default (exact for the first queries, then the index), index from the first query, and
+# a rent large enough that this overlapping scene is decided by exact search alone (no index is ever built)
+RENTS = {"default": (GUIDED, "gemm+ivf"), "index": (GUIDED.replace(exact_rent=0.0), "ivf"),
+         "exact": (GUIDED.replace(exact_rent=1.0, max_unguided=0.5), "gemm")}
+
+
+@pytest.mark.parametrize("rent", sorted(RENTS))
 @pytest.mark.parametrize("mode", MODES)
-def test_prepared_images_give_the_same_matches(scene_and_features, mode):
+def test_prepared_images_give_the_same_matches(scene_and_features, mode, rent):
     _, f1, f2 = scene_and_features
-    fresh = match(f1, f2, mode, GUIDED)
+    cfg, used = RENTS[rent]
+    fresh = match(f1, f2, mode, cfg)
     p1, p2 = prepare(f1), prepare(f2)
     for a, b in ((p1, p2), (p1, f2), (f1, p2), (p1, p2)):  # either side, and reused a second time
-        r = match(a, b, mode, GUIDED)
+        r = match(a, b, mode, cfg)
         np.testing.assert_array_equal(r.pairs, fresh.pairs)
         np.testing.assert_array_equal(r.distances, fresh.distances)
         assert r.stats.comparisons == fresh.stats.comparisons
         assert r.geometry.verdict == fresh.geometry.verdict
         np.testing.assert_array_equal(r.geometry.inliers, fresh.geometry.inliers)
     if mode != "bf":
-        assert p2._index is not None  # the index was built once and kept on the prepared image
-        assert match(p1, p2, mode, GUIDED).stats.timing.index_build_s == 0.0
+        assert fresh.stats.details["unguided_search"] == used
+        assert (fresh.stats.timing.index_build_s > 0) == ("ivf" in used)
+        assert (p2._index is not None) == ("ivf" in used)  # built once, when needed, and kept on the prepared image
+        assert match(p1, p2, mode, cfg).stats.timing.index_build_s == 0.0
+
+
+def test_exact_rent_is_capped_by_the_index_build_cost(scene_and_features):
+    """Ski-rental: the first queries (in draw order) are searched exactly until they have cost what building the
+    index costs, every later one through the index -- counted exactly."""
+    _, f1, f2 = scene_and_features
+    p2 = prepare(f2)
+    cfg = GUIDED.replace(exact_rent=1.0, max_unguided=1.0, first_check=10_000)  # never verified: runs to the end
+    r = match(f1, p2, "so+epi+ia", cfg)
+    assert r.stats.details["unguided_search"] == "gemm+ivf"
+    order = draw_order(f1.keypoints[:, 0], max(f1.image_size[0], f1.keypoints[:, 0].max() + 1), cfg.num_groups,
+                       -f1.responses.astype(np.float32))
+    k = -(-p2.build_comparisons // len(f2))  # exact queries: the last exact batch is cut to the rent
+    assert 0 < k < len(f1)
+    ivf = p2.search2(f1.descriptors[order[k:]])[4]
+    assert r.stats.phase_comparisons[0] == k * len(f2) + ivf
+    assert r.stats.phase_queries[0] == len(f1)
 
 
 def test_demo_scene_never_exits_early():

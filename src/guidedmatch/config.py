@@ -123,6 +123,11 @@ class MatcherConfig:
                                          # index of image 2, 0.5 with exact search (binary descriptors: no index)
     unguided_index: bool = True          # unguided start (start="verified") searches a faiss IVF index of image 2
                                          # (guidedmatch.prepared; built once per image) instead of exact GEMM
+    exact_rent: float = 0.18             # ski-rental: the unguided start searches exactly (GEMM) for its first queries,
+                                         # up to min(index build cost, exact_rent * exit budget) comparisons (added to
+                                         # the budget: an unrelated pair stops at <= 2.5 * 1.18 < 3 % of N1*N2), then
+                                         # the IVF index (built then if not prepared): ~40k SIFT adjacent Herz-Jesus
+                                         # pairs are decided within that and never build one (0: index first)
     unverified: Literal["drop", "keep"] = "drop"  # guided modes, verdict "no-overlap": return no matches (counted in
                                          # stats.details["dropped_unverified"]) or keep the unguided ones; mode "bf"
                                          # always keeps its matches (the baseline)
@@ -164,6 +169,7 @@ class MatcherConfig:
         check_number(o, "guide_margin", self.guide_margin, lo=1, hi=100)
         check_number(o, "max_unguided", self.max_unguided, lo=0, lo_open=True, hi=1, allow_none=True)
         check_bool(o, "unguided_index", self.unguided_index)
+        check_number(o, "exact_rent", self.exact_rent, lo=0, hi=1)
         check_choice(o, "unverified", self.unverified, ("drop", "keep"))
         check_bool(o, "auto_bf", self.auto_bf)
         check_number(o, "bf_below_float", self.bf_below_float, lo=0, integer=True)

@@ -22,14 +22,17 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    x-intervals and drawn round-robin (within a group strongest response first, else a seeded random order), so the
    first matches cover the whole image width.
 2. **Unguided start** (§III-A; the gate and the exit are beyond the paper, issue 11, :meth:`_GuidedRun.unguided_start`):
-   drawn features are matched in mini-batches against all of image 2 -- through the faiss IVF index of image 2
-   (:class:`~guidedmatch.prepared.UnguidedSearch`, ~2 sqrt(N2) + 4 cells per query), or exactly (GEMM / popcount;
-   binary descriptors, small images, ``unguided_index=False``). These correspondences are the *evidence*: no model
+   drawn features are matched in mini-batches against all of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`):
+   exactly (GEMM) for the first queries, until they have cost min(building image 2's index, ``exact_rent`` of the
+   exit budget; added to it) comparisons, then through the faiss IVF index of image 2 (~2 sqrt(N2) + 4 cells per query; built
+   then unless image 2 was prepared) -- ski-rental: a well-overlapping pair is decided before the index is needed
+   and never builds one, and the rule is the same for prepared and fresh images, so are the matches. Exact only:
+   binary descriptors (popcount), small images, ``unguided_index=False``. These correspondences are the *evidence*: no model
    selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
    :func:`~guidedmatch.geometry.two_view_geometry` decides whether they share a geometry beyond chance; the first
    model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
-   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index)
-   without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are
+   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus
+   the exact rent without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are
    not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after
    ``update_every`` exact unguided correspondences, no gate, no exit.
 3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit, then after every ``update_every`` (200)
@@ -407,7 +410,7 @@ class _GuidedRun:
         self.checks: list[dict] = []            # verdict checks of the unguided start
         self.decision = None                    # the last TwoViewGeometry decided on unguided evidence
         self.early_exit: str | None = None
-        self.unguided_search = None             # "ivf" | "gemm" | "popcount"
+        self.unguided_search = None             # "gemm" | "gemm+ivf" | "ivf" | "popcount" (UnguidedSearch.used)
         self.unguided_comparisons = 0
         self.last_alignment = None              # SafeAlignment of the latest model fit (mode IA)
         self.fallbacks: list[Fallback] = []
@@ -512,10 +515,12 @@ class _GuidedRun:
         they are; the verdict on them is only reported. ``start="verified"``: the unguided correspondences are the
         evidence (no model selected them). After ``first_check`` of them, and each time they have grown by
         ``check_growth``, :func:`~guidedmatch.geometry.two_view_geometry` decides; the first model is fitted as soon
-        as it says "verified" -- a model fitted on too little evidence never guides. The search is the approximate
-        index of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`, ``unguided_index``) or exact. When the
-        start has spent ``max_unguided * N1 * N2`` comparisons without verified evidence it stops (early exit, verdict
-        from the last check: "no-overlap" / "too-few-matches"), the remaining features are not matched.
+        as it says "verified" -- a model fitted on too little evidence never guides. The search is exact for the first
+        ``min(index build comparisons, exact_rent * exit budget)`` comparisons, then the approximate index of image 2
+        (:class:`~guidedmatch.prepared.UnguidedSearch`, ``unguided_index``, ``exact_rent``). When the
+        start has spent ``max_unguided * N1 * N2`` comparisons plus the exact rent without verified evidence it stops
+        (early exit, verdict from the last check: "no-overlap" / "too-few-matches"), the remaining features are not
+        matched.
         """
         from .prepared import UnguidedSearch
 
@@ -523,29 +528,32 @@ class _GuidedRun:
         n1, n2 = len(self.d1), len(self.d2)
         paper = c.start == "paper"
         kind = UnguidedSearch.choose(self.p2, use_index=c.unguided_index and not paper)
-        if kind == "ivf" and self.p2._index is None:
-            t0 = time.perf_counter()
-            self.p2.index()
-            self.timing["index_build_s"] += time.perf_counter() - t0
-        self.unguided_search = kind
         frac = c.max_unguided if c.max_unguided is not None else (0.025 if kind == "ivf" else 0.5)
         budget = frac * n1 * n2
-        bs = c.batch_size if kind != "ivf" else max(c.batch_size, 256)  # an index search has no GEMM to fill
+        # ski-rental: exact search until it has cost what building the index costs (capped at exact_rent of the exit
+        # budget), the index after -- the same rule whether or not image 2 was prepared, so the same matches
+        rent = min(float(self.p2.build_comparisons), c.exact_rent * budget) if kind == "ivf" else 0.0
+        budget += rent  # the rent is not taken from the index's evidence budget: the exit at <= (1 + exact_rent) frac
         models = None
         total = ptr = 0
         next_check = max(c.first_check, c.min_model_matches)
         checked_at = -1
-        with UnguidedSearch(self.p1, self.p2, kind) as search:
+        with UnguidedSearch(self.p1, self.p2, kind, exact_budget=rent) as search:
             while ptr < len(order):
-                n = bs
+                if search.exact:
+                    n = c.batch_size
+                    if kind == "ivf":  # the last exact batch is cut to the rent
+                        n = int(min(n, max(1, np.ceil((rent - search.exact_comparisons) / max(n2, 1)))))
+                else:
+                    n = max(c.batch_size, 256)  # an index search has no GEMM to fill
                 if not paper and ptr:  # the last batch before the budget is cut to fit it (+ <= 8 queries)
-                    per_query = self.unguided_comparisons / ptr
-                    n = int(min(bs, max(8, np.ceil((budget - self.unguided_comparisons) / max(per_query, 1.0)))))
+                    n = int(min(n, max(8, np.ceil((budget - self.unguided_comparisons) / max(search.per_query(), 1.0)))))
                 batch = order[ptr: ptr + n]
                 ptr += len(batch)
                 t0 = time.perf_counter()
                 acc = self.unguided_batch(batch, search)
                 self.timing["initial_bf_s"] += time.perf_counter() - t0
+                self.unguided_search = search.used
                 got.add(acc, 0)
                 total += len(acc.q)
                 if paper:
@@ -567,10 +575,13 @@ class _GuidedRun:
                     next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
                 if self.unguided_comparisons >= budget and ptr < len(order):
                     self.early_exit = (f"unguided start spent {self.unguided_comparisons / max(n1 * n2, 1):.1%} of "
-                                       f"N1*N2 ({frac:.1%} allowed) on {ptr} of {n1} features without evidence "
+                                       f"N1*N2 ({budget / max(n1 * n2, 1):.1%} allowed) on {ptr} of {n1} features without evidence "
                                        f"strong enough to guide; the remaining {len(order) - ptr} features are not "
                                        "matched")
                     break
+            self.timing["index_build_s"] += search.index_build_s
+            self.timing["initial_bf_s"] -= search.index_build_s
+            self.unguided_search = search.used
         if models is None:
             if checked_at != total or self.decision is None:
                 self.decide(got)  # the verdict on all the evidence there is
