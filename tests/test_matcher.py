@@ -296,6 +296,14 @@ def test_pure_rotation_scene_is_H():
         r = match(f1, f2, mode, GUIDED)
         assert r.geometry.verdict == "verified" and r.geometry.model == "H", mode
         assert r.geometry.H is not None and r.geometry.num_inliers > 0.8 * len(r)
+    # planar_recheck: the guided matches (phase >= 1) that are not inliers of the verified H are dropped, counted
+    on = match(f1, f2, "so+epi+ia", GUIDED)
+    off = match(f1, f2, "so+epi+ia", GUIDED.replace(planar_recheck=False))
+    guided_off = (off.flags["phase"] >= 1) & ~off.geometry.inliers
+    assert on.stats.details["dropped_off_homography"] == guided_off.sum() > 0
+    np.testing.assert_array_equal(on.pairs, off.pairs[~guided_off])
+    assert np.all(on.geometry.inliers[on.flags["phase"] >= 1])
+    assert off.stats.details["dropped_off_homography"] == 0
 
 
 # unguided start: ski-rental default (exact for the first queries, then the index), index from the first query, and

@@ -49,7 +49,9 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    feature's candidates are the image-2 features in its admissible x-range (aligned coordinates) and within
    ``band_px`` of its epipolar line (:func:`search_regions`).
 6. **Re-check** (beyond the paper, ``recheck``): matches accepted before the final models are tested against the
-   final x-range and band and dropped when outside (the fix the paper suggests in §IV-C).
+   final x-range and band and dropped when outside (the fix the paper suggests in §IV-C). When the verdict is a
+   homography (planar scene or pure rotation, ``planar_recheck``), guided matches that are not its inliers are dropped
+   at step 8 (``details["dropped_off_homography"]``): F's band does not constrain matches along the plane.
 7. **One-to-one** (beyond the paper, :func:`one_to_one`) and the optional **mutual check** (:func:`mutual_check`).
 8. **Result**: matches sorted by image-1 index, per-match flags (incl. the spatial-order probability within the final
    match set, Talker Eq. 12), a typed :class:`~guidedmatch.results.MatchStats` (``details``: ``unguided_search``,
@@ -918,6 +920,16 @@ class _GuidedRun:
             self.decide(got)
         final_F = models.F if models is not None and models.F is not None else None
         geometry = report_geometry(self.decision, x1, x2, F=final_F, config=VerdictConfig(seed=self.c.seed))
+        dropped_planar = 0
+        if self.c.planar_recheck and geometry and geometry.model == "H" and len(q):
+            # a planar scene (or pure rotation): the epipolar band of an F fitted to it constrains nothing along the
+            # plane, the verified homography does -- guided matches off it are dropped (unguided ones stay, as in BF)
+            keep = (flags["phase"] == 0) | geometry.inliers
+            dropped_planar = int((~keep).sum())
+            if dropped_planar:
+                q, j, d = q[keep], j[keep], d[keep]
+                flags = {k: v[keep] for k, v in flags.items()}
+                geometry = geometry.with_inliers(geometry.inliers[keep])
         self.timing["verdict_s"] += time.perf_counter() - t0
         q, j, d, flags, geometry, dropped_unverified = _drop_unverified(self.c, q, j, d, flags, geometry,
                                                                         self.fallback)
@@ -939,7 +951,7 @@ class _GuidedRun:
             phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c,
             details=dict(unguided_search=self.unguided_search, verdict_checks=tuple(self.checks),
                          early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons),
-                         dropped_unverified=dropped_unverified))
+                         dropped_unverified=dropped_unverified, dropped_off_homography=dropped_planar))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         return MatchResult(pairs, d, stats, flags, geometry)
 
