@@ -641,3 +641,32 @@ def test_flags_and_stats_are_the_same_shape_in_every_mode(scene_and_features):
         assert d["method"] == mode and d["comparisons"] == r.stats.comparisons == r.stats["comparisons"]
         assert d["num_model_updates"] == (0 if mode == "bf" else 2) and d["config"]["band_px"] == 5.0
         assert sum(r.stats.phase_queries) == len(f1)
+
+
+def test_planar_rule_keeps_the_matches_off_a_dominant_plane():
+    """planar_recheck drops guided matches off the verdict's H only when the final matches still look planar (H
+    inliers >= h_ratio * F inliers): a 3-D scene with a dominant plane keeps its off-plane matches."""
+    from types import SimpleNamespace
+
+    from guidedmatch.matcher import _planar
+
+    rng = np.random.default_rng(0)
+    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
+    a = np.radians(5.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([1.0, 0.0, 0.0])
+    n = 200
+    on = np.arange(n) < 0.6 * n  # 60 % of the points on the plane z = 5, the rest at depths 3-12
+    X = np.c_[rng.uniform(-2, 2, (n, 2)), np.where(on, 5.0, rng.uniform(3, 12, n))]
+    x1 = (X @ K.T)[:, :2] / X[:, 2:]
+    X2 = X @ R.T + t
+    x2 = (X2 @ K.T)[:, :2] / X2[:, 2:]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
+    H = K @ (R + np.outer(t, [0, 0, 1.0]) / 5.0) @ np.linalg.inv(K)  # the plane n = (0,0,1), d = 5
+    p = np.c_[x1, np.ones(n)] @ H.T
+    n_h = int((np.linalg.norm(p[:, :2] / p[:, 2:] - x2, axis=1) <= 3.0).sum())
+    assert on.sum() <= n_h < 0.7 * n  # the homography is the plane's (a few off-plane points lie near it)
+    assert not _planar(SimpleNamespace(num_inliers=n_h), F, x1, x2)  # F explains all: a 3-D scene
+    assert _planar(SimpleNamespace(num_inliers=n_h), F, x1[on], x2[on])  # the plane alone
+    assert _planar(SimpleNamespace(num_inliers=n_h), None, x1, x2)  # no F to compare with

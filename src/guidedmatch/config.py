@@ -102,7 +102,8 @@ class MatcherConfig:
                                          # None: chosen from the lines' slopes and the point density (speed only)
     recheck: bool = True                 # beyond the paper: re-test early matches against the final models
     planar_recheck: bool = True          # beyond the paper: when the verdict is a homography (planar scene / pure
-                                         # rotation: F and its band constrain nothing along the plane), drop the guided
+                                         # rotation: F and its band constrain nothing along the plane) and the final
+                                         # matches still look planar (H inliers >= h_ratio * F inliers), drop the guided
                                          # matches that are not its inliers (Oxford wall 1-2: 2.2 % -> 0.6 % wrong)
     outside_window: Literal["drop", "band"] = "band"  # image-1 feature outside the SO window ω*: "drop" (paper
                                          # §III-B.2) or, when an F model exists and the feature lies within the x-extent

@@ -50,8 +50,9 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    ``band_px`` of its epipolar line (:func:`search_regions`).
 6. **Re-check** (beyond the paper, ``recheck``): matches accepted before the final models are tested against the
    final x-range and band and dropped when outside (the fix the paper suggests in §IV-C). When the verdict is a
-   homography (planar scene or pure rotation, ``planar_recheck``), guided matches that are not its inliers are dropped
-   at step 8 (``details["dropped_off_homography"]``): F's band does not constrain matches along the plane.
+   homography (planar scene or pure rotation, ``planar_recheck``) and the final matches still look planar
+   (:func:`_planar`), guided matches that are not its inliers are dropped at step 8
+   (``details["dropped_off_homography"]``): F's band does not constrain matches along the plane.
 7. **One-to-one** (beyond the paper, :func:`one_to_one`) and the optional **mutual check** (:func:`mutual_check`).
 8. **Result**: matches sorted by image-1 index, per-match flags (incl. the spatial-order probability within the final
    match set, Talker Eq. 12), a typed :class:`~guidedmatch.results.MatchStats` (``details``: ``unguided_search``,
@@ -921,7 +922,8 @@ class _GuidedRun:
         final_F = models.F if models is not None and models.F is not None else None
         geometry = report_geometry(self.decision, x1, x2, F=final_F, config=VerdictConfig(seed=self.c.seed))
         dropped_planar = 0
-        if self.c.planar_recheck and geometry and geometry.model == "H" and len(q):
+        planar = self.c.planar_recheck and geometry and geometry.model == "H" and len(q)
+        if planar and _planar(geometry, final_F, x1, x2):
             # a planar scene (or pure rotation): the epipolar band of an F fitted to it constrains nothing along the
             # plane, the verified homography does -- guided matches off it are dropped (unguided ones stay, as in BF)
             keep = (flags["phase"] == 0) | geometry.inliers
@@ -954,6 +956,22 @@ class _GuidedRun:
                          dropped_unverified=dropped_unverified, dropped_off_homography=dropped_planar))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         return MatchResult(pairs, d, stats, flags, geometry)
+
+
+def _planar(geometry, F, x1, x2) -> bool:
+    """Whether the final matches ``x1 <-> x2`` still look planar: the verdict's homography explains at least
+    ``h_ratio`` (COLMAP's rule, :class:`~guidedmatch.geometry.VerdictConfig`) as many of them as the final ``F``
+    (Sampson distance within the same threshold). An "H" verdict taken on the few unguided correspondences of a 3-D
+    scene with a dominant plane (Herz-Jesus 0004-0005 at ~40k) fails it: the final matches off the plane are F
+    inliers, and they are kept."""
+    from .geometry import VerdictConfig, sampson_distance
+
+    if F is None or not np.all(np.isfinite(F)):
+        return True  # no F to compare with: the homography is the only model
+    c = VerdictConfig()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nf = int((sampson_distance(np.asarray(F, np.float64), x1, x2) <= c.threshold_px).sum())
+    return geometry.num_inliers >= c.h_ratio * nf
 
 
 def _drop_unverified(c: MatcherConfig, q, j, d, flags: dict, geometry, report):
