@@ -308,7 +308,10 @@ def test_pure_rotation_scene_is_H():
 
 # unguided start: ski-rental default (exact for the first queries, then the index), index from the first query, and
 # a rent large enough that this overlapping scene is decided by exact search alone (no index is ever built)
-RENTS = {"default": (GUIDED, "gemm+ivf"), "index": (GUIDED.replace(exact_rent=0.0), "ivf"),
+RENTS = {"default": (GUIDED, "ivf"),  # this small scene: the rent would buy < 64 exact queries, none is paid
+         # never strong enough to guide: exact up to the build cost, then the index
+         "rent": (GUIDED.replace(exact_rent=1.0, max_unguided=0.5, guide_margin=100), "gemm+ivf"),
+         "index": (GUIDED.replace(exact_rent=0.0), "ivf"),
          "exact": (GUIDED.replace(exact_rent=1.0, max_unguided=0.5), "gemm")}
 
 
@@ -338,7 +341,7 @@ def test_exact_rent_is_capped_by_the_index_build_cost(scene_and_features):
     index costs, every later one through the index -- counted exactly."""
     _, f1, f2 = scene_and_features
     p2 = prepare(f2)
-    cfg = GUIDED.replace(exact_rent=1.0, max_unguided=1.0, first_check=10_000)  # never verified: runs to the end
+    cfg = GUIDED.replace(exact_rent=1.0, max_unguided=1.0, guide_margin=100)  # never guides: runs to the end
     r = match(f1, p2, "so+epi+ia", cfg)
     assert r.stats.details["unguided_search"] == "gemm+ivf"
     order = draw_order(f1.keypoints[:, 0], max(f1.image_size[0], f1.keypoints[:, 0].max() + 1), cfg.num_groups,

@@ -131,7 +131,8 @@ class MatcherConfig:
                                          # up to min(index build cost, exact_rent * exit budget) comparisons (added to
                                          # the budget: an unrelated pair stops at <= 2.5 * 1.18 < 3 % of N1*N2), then
                                          # the IVF index (built then if not prepared): ~40k SIFT adjacent Herz-Jesus
-                                         # pairs are decided within that and never build one (0: index first)
+                                         # pairs are decided within that and never build one; no rent when it buys
+                                         # fewer than max(batch_size, 2 first_check) queries (0: index first)
     unverified: Literal["drop", "keep"] = "drop"  # guided modes, verdict "no-overlap": return no matches (counted in
                                          # stats.details["dropped_unverified"]) or keep the unguided ones; mode "bf"
                                          # always keeps its matches (the baseline)

@@ -24,7 +24,7 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
 2. **Unguided start** (§III-A; the gate and the exit are beyond the paper, issue 11, :meth:`_GuidedRun.unguided_start`):
    drawn features are matched in mini-batches against all of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`):
    exactly (GEMM) for the first queries, until they have cost min(building image 2's index, ``exact_rent`` of the
-   exit budget; added to it) comparisons, then through the faiss IVF index of image 2 (~2 sqrt(N2) + 4 cells per query; built
+   exit budget; added to it; none when that is under max(``batch_size``, 2 ``first_check``) queries) comparisons, then through the faiss IVF index of image 2 (~2 sqrt(N2) + 4 cells per query; built
    then unless image 2 was prepared) -- ski-rental: a well-overlapping pair is decided before the index is needed
    and never builds one, and the rule is the same for prepared and fresh images, so are the matches. Exact only:
    binary descriptors (popcount), small images, ``unguided_index=False``. These correspondences are the *evidence*: no model
@@ -536,6 +536,8 @@ class _GuidedRun:
         # ski-rental: exact search until it has cost what building the index costs (capped at exact_rent of the exit
         # budget), the index after -- the same rule whether or not image 2 was prepared, so the same matches
         rent = min(float(self.p2.build_comparisons), c.exact_rent * budget) if kind == "ivf" else 0.0
+        if rent < max(c.batch_size, 2 * c.first_check) * n2:
+            rent = 0.0  # too few exact queries to reach a first verdict check: pure overhead (8192 SIFT: 37 queries)
         budget += rent  # the rent is not taken from the index's evidence budget: the exit at <= (1 + exact_rent) frac
         models = None
         total = ptr = 0
