@@ -24,17 +24,18 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
 2. **Unguided start** (§III-A; the gate and the exit are beyond the paper, issue 11, :meth:`_GuidedRun.unguided_start`):
    drawn features are matched in mini-batches against all of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`):
    exactly (GEMM) for the first queries, until they have cost min(building image 2's index, ``exact_rent`` of the
-   exit budget; added to it; none when that is under max(``batch_size``, 2 ``first_check``) queries) comparisons, then through the faiss IVF index of image 2 (~2 sqrt(N2) + 4 cells per query; built
-   then unless image 2 was prepared) -- ski-rental: a well-overlapping pair is decided before the index is needed
-   and never builds one, and the rule is the same for prepared and fresh images, so are the matches. Exact only:
-   binary descriptors (popcount), small images, ``unguided_index=False``. These correspondences are the *evidence*: no model
-   selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
+   exit budget; added to it; none when that buys fewer than max(``batch_size``, 2 ``first_check``) queries)
+   comparisons, then through the faiss IVF index of image 2 (~2 sqrt(N2) + 4 cells per query; built then unless
+   image 2 was prepared) -- ski-rental: a well-overlapping pair is decided before the index is needed and never
+   builds one, and the rule is the same for prepared and fresh images, so are the matches. Exact only: binary
+   descriptors (popcount), small images, ``unguided_index=False``. These correspondences are the *evidence*: no
+   model selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
    :func:`~guidedmatch.geometry.two_view_geometry` decides whether they share a geometry beyond chance; the first
    model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
    evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus
-   the exact rent without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are
-   not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after
-   ``update_every`` exact unguided correspondences, no gate, no exit.
+   the exact rent without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining
+   features are not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first
+   model after ``update_every`` exact unguided correspondences, no gate, no exit.
 3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit, then after every ``update_every`` (200)
    newly accepted correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 fits
    in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E; validated over the
@@ -552,7 +553,8 @@ class _GuidedRun:
                 else:
                     n = max(c.batch_size, 256)  # an index search has no GEMM to fill
                 if not paper and ptr:  # the last batch before the budget is cut to fit it (+ <= 8 queries)
-                    n = int(min(n, max(8, np.ceil((budget - self.unguided_comparisons) / max(search.per_query(), 1.0)))))
+                    left = (budget - self.unguided_comparisons) / max(search.per_query(), 1.0)
+                    n = int(min(n, max(8, np.ceil(left))))
                 batch = order[ptr: ptr + n]
                 ptr += len(batch)
                 t0 = time.perf_counter()
@@ -580,9 +582,9 @@ class _GuidedRun:
                     next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
                 if self.unguided_comparisons >= budget and ptr < len(order):
                     self.early_exit = (f"unguided start spent {self.unguided_comparisons / max(n1 * n2, 1):.1%} of "
-                                       f"N1*N2 ({budget / max(n1 * n2, 1):.1%} allowed) on {ptr} of {n1} features without evidence "
-                                       f"strong enough to guide; the remaining {len(order) - ptr} features are not "
-                                       "matched")
+                                       f"N1*N2 ({budget / max(n1 * n2, 1):.1%} allowed) on {ptr} of {n1} features "
+                                       f"without evidence strong enough to guide; the remaining {len(order) - ptr} "
+                                       "features are not matched")
                     break
             self.timing["index_build_s"] += search.index_build_s
             self.timing["initial_bf_s"] -= search.index_build_s
