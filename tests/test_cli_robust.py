@@ -292,3 +292,49 @@ def test_match_reports_compilation_apart_from_time_s(small_scene_features, monke
     res = matcher.match(f1, f2, "so+epi+ia")
     wall = _time.perf_counter() - t
     assert wall < 5.0 and res.stats.details["jit_compile_s"] == 5.0 and res.stats.time_s == 0.0  # clamped at 0
+
+
+def test_background_compile_never_leaves_helpers_running(monkeypatch):
+    import subprocess
+    import sys
+
+    from guidedmatch import jit
+
+    started = []
+    real_popen = subprocess.Popen
+
+    def fake_popen(cmd, **kw):  # the helpers' command line, run as a harmless sleeper
+        assert cmd[1:4] == ["-m", "guidedmatch.jit", "sift"] and cmd[4] in ("parallel", "serial") and cmd[5] == "-"
+        p = real_popen([sys.executable, "-c", "import time; time.sleep(%s)" % (0.2 if ok else 60)], **kw)
+        started.append(p)
+        return p
+
+    monkeypatch.setattr(subprocess, "Popen", fake_popen)
+    monkeypatch.setattr(jit, "cache_is_cold", lambda detector: True)
+    monkeypatch.setattr(jit, "_idle_cores", lambda: 2.0)
+    ok = True
+    with jit.background_compile("sift", stream=sys.stdout) as bg:
+        assert bg and len(bg.procs) == 2
+    assert all(p.returncode == 0 for p in started)  # waited for on leaving the block
+    ok, started[:] = False, []
+    with pytest.raises(RuntimeError):
+        with jit.background_compile("sift", stream=sys.stdout):
+            raise RuntimeError("detection failed")
+    assert len(started) == 2 and all(p.returncode is not None for p in started)  # killed, not left running
+    with jit.background_compile("sift", ("bf",)) as bg:
+        assert not bg  # brute force alone: its one small kernel compiles in the foreground
+    monkeypatch.setattr(jit, "_idle_cores", lambda: 0.3)  # saturated machine: compile in the foreground
+    with jit.background_compile("sift") as bg:
+        assert not bg
+    monkeypatch.setattr(jit, "_idle_cores", lambda: 2.0)
+    monkeypatch.setenv(jit.BACKGROUND_ENV, "0")
+    with jit.background_compile("sift") as bg:
+        assert not bg
+
+
+def test_cache_is_cold_reads_the_numba_index():
+    from guidedmatch import jit, kernels
+
+    assert isinstance(jit.cache_is_cold("sift"), bool)
+    assert jit._kernel_dtype("sift") == "uint8" and jit._kernel_dtype("orb") == "uint64"
+    assert kernels._guided_par._cache is not None  # the internals cache_is_cold reads exist in this Numba

@@ -250,3 +250,32 @@ def test_atomic_writers_name_the_users_path_not_the_temp_file(tmp_path):
         with pytest.raises(OutputError) as e:
             write(tmp_path / "file" / "m.npz")
         assert "tmp" not in str(e.value).replace(str(tmp_path), "") and "m.npz" in str(e.value)
+
+
+def test_strict_reads_from_many_threads_leave_stderr_intact(tmp_path, rng, capfd):
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from guidedmatch.errors import ImageReadError
+
+    import cv2
+
+    good, cut = tmp_path / "g.jpg", tmp_path / "c.jpg"
+    img = cv2.resize(rng.integers(0, 255, (96, 128)).astype(np.uint8), (1600, 1200))  # decodes slowly enough to race
+    data = cv2.imencode(".jpg", img)[1].tobytes()
+    good.write_bytes(data)
+    bad = bytearray(data)
+    bad[len(bad) // 2: len(bad) // 2 + 2] = b"\xff\xd9"
+    cut.write_bytes(bytes(bad))
+
+    def read(k):
+        try:
+            return load_image(good if k % 2 else cut).shape
+        except ImageReadError:
+            return "error"
+
+    with ThreadPoolExecutor(4) as ex:
+        res = list(ex.map(read, range(40)))
+    assert res.count("error") == 20 and res.count((1200, 1600)) == 20
+    os.write(2, b"still-stderr\n")  # fd 2 points at the real stderr again
+    assert "still-stderr" in capfd.readouterr().err

@@ -18,6 +18,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -220,41 +221,53 @@ def check_output_path(path: str | os.PathLike, what: str = "output") -> Path:
     ...
     guidedmatch.errors.OutputError: cannot write -o /proc/m.csv: folder /proc does not accept new files (No such file or directory)
     """
+    path = Path(path)
     try:
-        return _check_output_path(Path(path), what)
+        if path.is_dir():
+            raise OutputError(f"cannot write {what} {path}: it is a folder")
+        parent = path.parent if str(path.parent) else Path(".")
+        _folder_accepts_files(parent, f"{what} {path}")
+        if path.exists() and not os.access(path, os.W_OK) and not os.access(parent, os.W_OK):
+            raise OutputError(f"cannot write {what} {path}: the file is read-only")
     except OSError as exc:  # e.g. a folder on the way that cannot be searched
         raise OutputError(f"cannot write {what} {path}: {exc.strerror or exc}") from None
+    return path
 
 
-def _check_output_path(path: Path, what: str) -> Path:
-    if path.is_dir():
-        raise OutputError(f"cannot write {what} {path}: it is a folder")
-    parent = path.parent if str(path.parent) else Path(".")
-    anc = parent
+def _folder_accepts_files(folder: Path, shown: str) -> None:
+    """The nearest existing ancestor of ``folder`` (itself included) is a folder in which a probe file can be
+    created (and is removed again); OutputError "cannot write {shown}: ..." otherwise."""
+    anc = folder
     while not anc.exists() and anc != anc.parent:
         anc = anc.parent
     if not anc.is_dir():
-        raise OutputError(f"cannot write {what} {path}: {anc} is not a folder")
+        raise OutputError(f"cannot write {shown}: {anc} is not a folder")
     try:
         fd, probe = tempfile.mkstemp(prefix=".guidedmatch-probe-", dir=anc)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
-        raise OutputError(f"cannot write {what} {path}: folder {anc} does not accept new files "
-                          f"({exc.strerror or exc})") from None
-    if path.exists() and not os.access(path, os.W_OK) and not os.access(parent, os.W_OK):
-        raise OutputError(f"cannot write {what} {path}: the file is read-only")
-    return path
+        raise OutputError(f"cannot write {shown}: folder {anc} does not accept new files ({exc.strerror or exc})") \
+            from None
 
 
 def writable_folder(folder: str | os.PathLike, what: str = "--out") -> Path:
-    """Check before any work that ``folder`` is, or can be created as, a folder that accepts new files
-    (:func:`check_output_path` of a file inside it); nothing is created. :class:`~guidedmatch.errors.OutputError`
-    naming ``folder`` otherwise."""
+    """Check before any work that ``folder`` is, or can be created as, a folder that accepts new files (a probe
+    file in its nearest existing ancestor); nothing is created. :class:`~guidedmatch.errors.OutputError` naming
+    ``folder`` otherwise.
+
+    >>> writable_folder("/proc/out")
+    Traceback (most recent call last):
+    ...
+    guidedmatch.errors.OutputError: cannot write --out /proc/out: folder /proc does not accept new files (No such file or directory)
+    """
     folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise OutputError(f"cannot write {what} {folder}: it exists and is not a folder")
-    check_output_path(folder / "probe", what)
+    try:
+        if folder.exists() and not folder.is_dir():
+            raise OutputError(f"cannot write {what} {folder}: it exists and is not a folder")
+        _folder_accepts_files(folder, f"{what} {folder}")
+    except OSError as exc:
+        raise OutputError(f"cannot write {what} {folder}: {exc.strerror or exc}") from None
     return folder
 
 
@@ -313,28 +326,34 @@ _CORRUPT_MESSAGE = re.compile(r"premature end|corrupt|truncat|read error|crc err
 _BENIGN_MESSAGE = re.compile(r"iCCP|sRGB|known incorrect|unknown field|TIFFReadDirectory: Warning", re.IGNORECASE)
 
 
+_STDERR_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _capture_native_stderr():
     """Collect what native code (libjpeg, libpng: ``fprintf(stderr, ...)``) writes to file descriptor 2 meanwhile.
 
     Yields a list that receives the captured text on exit. Falls back to no capture when fd 2 is unavailable.
+    Serialized by a lock: fd 2 is process-wide, and two threads redirecting it at once could leave it pointing at
+    a temp file.
     """
     out: list[str] = []
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError, AttributeError):
-        yield out
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
+    with _STDERR_LOCK:
         try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):
             yield out
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            out.append(tmp.read().decode("utf-8", "replace"))
+            return
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                out.append(tmp.read().decode("utf-8", "replace"))
 
 
 def read_image_strict(path: str | os.PathLike, flags: int | None = None) -> np.ndarray:
@@ -377,7 +396,7 @@ def read_image_strict(path: str | os.PathLike, flags: int | None = None) -> np.n
     if len(data) == 0:
         raise ImageReadError(f"image file is empty: {path}")
     problem = None
-    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-64:]:
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND\xaeB`\x82" not in data[-4096:]:  # IEND + its fixed CRC
         problem = "PNG without its IEND chunk"
     elif data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[2:]:
         problem = "JPEG without an end-of-image marker"

@@ -119,3 +119,154 @@ def warm_up(f1, f2, mode: str, config=None, *, note: bool = True, max_features: 
         except Exception:  # the real run reports errors; a warm-up never hides or raises them
             pass
     return cm.seconds
+
+
+# --------------------------------------------------------------------------- first run: compile on both cores
+#: set to "0" to compile in the foreground only (the CLI otherwise uses two helper processes on a cold cache)
+BACKGROUND_ENV = "GUIDEDMATCH_BACKGROUND_COMPILE"
+
+
+def _kernel_dtype(detector: str) -> str:
+    """dtype of the guided kernel's descriptor arrays for a detector: byte-valued SIFT runs as uint8, binary as
+    uint64 words (:func:`~guidedmatch.kernels.pack_bits_u64`)."""
+    return "uint8" if detector == "sift" else "uint64"
+
+
+def cache_is_cold(detector: str) -> bool:
+    """True when Numba's on-disk cache holds no guided kernel for ``detector``'s descriptor type (a first run).
+
+    Reads the cache index of :data:`guidedmatch.kernels._guided_par` (Numba internals, so any failure -- caching
+    disabled, another Numba version -- answers False: no background work, the foreground compiles as usual).
+    """
+    try:
+        from . import kernels
+
+        index = kernels._guided_par._cache._cache_file._load_index()
+        tag = f"Array({_kernel_dtype(detector)}, 2"
+        return not any(tag in str(key) for key in index)
+    except Exception:
+        return False
+
+
+def _precompile(detector: str, part: str, with_bf: bool = False) -> None:
+    """Compile one half of the kernels a run of ``detector`` features needs (in a helper process; they land in the
+    on-disk cache). ``part="parallel"``: the multi-threaded guided kernel, and with ``with_bf`` the brute-force
+    top-2 of mode ``bf`` (direct calls on small arrays of the exact argument types); ``"serial"``: everything a
+    ``so+epi+ia`` run of <= 1500 features reaches (single-threaded guided kernel, spatial-order and alignment
+    kernels) on a small rendered scene."""
+    rng = np.random.default_rng(0)
+    if part == "parallel":
+        from . import kernels
+
+        n = kernels.PARALLEL_MIN_QUERIES
+        pts = rng.uniform(0, 100, (n, 2))
+        if detector == "sift":
+            d = rng.integers(0, 256, (n, 128)).astype(np.uint8)
+        else:
+            d = kernels.pack_bits_u64(rng.integers(0, 256, (n, 32), dtype=np.uint8))
+        cols, rows = kernels.build_strips(pts, 16.0, 0), kernels.build_strips(pts, 16.0, 1)
+        lines = np.tile([0.0, 1.0, -50.0], (n, 1))
+        kernels.guided_top2(np.arange(n), d, d, lines, True, 5.0, np.full(n, -np.inf), np.full(n, np.inf), cols, rows)
+        if not with_bf:
+            return
+        if detector == "sift":
+            kernels.top2_gemm(np.zeros((256, 64), np.float32), np.zeros(64, np.float32), np.zeros(256, np.float32),
+                              False)
+        else:
+            kernels.hamming_top2(d[:8], d[:8])
+    else:
+        from .features import detect
+        from .matcher import match
+        from .testing.scenes import make_scene
+
+        scene = make_scene((640, 480), roll_deg=20.0, seed=1)
+        match(detect(scene.image1, detector, 1500), detect(scene.image2, detector, 1500), "so+epi+ia")
+
+
+def _idle_cores() -> float:
+    """Usable cores minus the 1-minute load average (helpers only pay off when a core is idle; on a saturated
+    machine they add ~3 CPU-seconds of imports for nothing)."""
+    import os
+
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    try:
+        return n - os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return float(n)
+
+
+class BackgroundCompile:
+    """Two helper processes compiling the kernels of a first run while the caller reads and detects
+    (:func:`background_compile`). ``wait()`` returns the seconds spent waiting for them."""
+
+    def __init__(self, procs):
+        self.procs = procs
+
+    def __bool__(self) -> bool:
+        return bool(self.procs)
+
+    def wait(self, timeout: float = 600.0) -> float:
+        import subprocess
+
+        if not self.procs:
+            return 0.0
+        t0 = time.perf_counter()
+        for p in self.procs:
+            try:
+                p.wait(timeout=max(1.0, timeout - (time.perf_counter() - t0)))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        self.procs = []
+        return time.perf_counter() - t0
+
+    def stop(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        self.procs = []
+
+
+@contextmanager
+def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
+    """On a first run (:func:`cache_is_cold`) of guided ``modes``, compile the kernels they need for ``detector``
+    features in two helper processes -- one per core -- while the block runs (image reading, detection); yields a
+    :class:`BackgroundCompile` (falsy when nothing was started: warm cache, no idle core (load average), or
+    ``GUIDEDMATCH_BACKGROUND_COMPILE=0``).
+    Call ``wait()`` before matching; on leaving the block the helpers are waited for (or killed on an error), never
+    left running. The caller's warm-up then loads the kernels from the cache, and compiles whatever is missing.
+    """
+    import os
+    import subprocess
+
+    global _note_printed
+    procs = []
+    modes = [str(m) for m in modes]
+    guided = any(m != "bf" for m in modes)  # bf alone needs one small kernel: compiled in the foreground
+    if guided and os.environ.get(BACKGROUND_ENV, "1") != "0" and _idle_cores() >= 1 and cache_is_cold(detector):
+        with _note_lock:
+            if not _note_printed:
+                _note_printed = True
+                print(NOTE, file=stream or sys.stderr, flush=True)
+        for part in ("parallel", "serial"):
+            try:
+                procs.append(subprocess.Popen([sys.executable, "-m", "guidedmatch.jit", detector, part,
+                                               "bf" if "bf" in modes else "-"],
+                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            except OSError:
+                break
+    bg = BackgroundCompile(procs)
+    try:
+        yield bg
+    except BaseException:
+        bg.stop()
+        raise
+    bg.wait()
+
+
+if __name__ == "__main__":  # helper process of background_compile: python -m guidedmatch.jit DETECTOR PART
+    _precompile(sys.argv[1], sys.argv[2], sys.argv[3] == "bf")
