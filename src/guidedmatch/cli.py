@@ -1,4 +1,4 @@
-"""Command-line interface: ``guidedmatch match | demo | experiment | bench | colmap | hloc``.
+"""Command-line interface: ``guidedmatch match | demo | experiment | bench | colmap | hloc | sfm``.
 
 Every error the user can cause is a :class:`~guidedmatch.errors.GuidedMatchError` (missing or unreadable image,
 no features, bad option or config value, mismatched descriptors, ...): it prints one line ``guidedmatch: error:
@@ -324,6 +324,11 @@ def cmd_experiment(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    writable_folder(args.out)
+    if args.which == "sfm":
+        from .evaluation import bench_sfm
+
+        return int(bench_sfm.main(args) or 0)
     from .evaluation.bench import run_benchmarks
 
     if args.which == "collection":  # issue 12: guidedmatch colmap vs pycolmap.match_exhaustive on Herz-Jesus-P8
@@ -336,6 +341,23 @@ def cmd_bench(args) -> int:
         return bench_collection(["--data", str(root), "--out", str(Path(args.out) / "collection")])
     run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
                    detector=args.detector, seed=args.seed)
+    return 0
+
+
+def cmd_sfm(args) -> int:
+    from .sfm import SfmConfig, run_sfm
+
+    conf = SfmConfig(detector=args.detector, max_features=args.max_features, max_image_size=args.max_image_size,
+                     peak_threshold=args.peak_threshold, camera_model=args.camera_model, camera=args.camera,
+                     single_camera=args.single_camera, pairs=args.pairs, mode=args.mode,
+                     matcher=_parse_kv(args.config, "--config") or None, geometry=args.geometry, workers=args.workers,
+                     scheduler=args.scheduler, num_threads=args.threads, seed=args.seed, progress=not args.quiet)
+    report = run_sfm(args.image_dir, args.out_dir, conf, command="guidedmatch " + " ".join(sys.argv[1:]),
+                     colmap_log=args.colmap_log)
+    if report["registered"] < 2:
+        print(f"guidedmatch: no reconstruction: the mapper registered {report['registered']} of {report['num_images']} "
+              f"images (too few verified pairs; see {Path(args.out_dir) / 'report.md'})", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -552,15 +574,68 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="reproduce the paper's tables side by side with the paper and peers",
                        description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
-    b.add_argument("which", choices=BENCHMARKS + ("collection",))
+    b.add_argument("which", choices=(*BENCHMARKS, "collection", "sfm"),
+                   help="sfm: COLMAP's matcher vs guidedmatch inside COLMAP's mapper, GT poses (Herz-Jesus-P8)")
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
     b.add_argument("--repeats", type=_positive_int, default=None, help="timing repeats per method (median)")
     b.add_argument("--detector", default="sift", choices=DETECTORS)
     b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--scene", default=None, help="sfm: scene folder with images/ and gt_dense_cameras/ (Strecha "
+                   "layout; default: Herz-Jesus-P8 in the data folder)")
+    b.add_argument("--features", action="append", choices=("8192", "50k"), help="sfm: feature setting(s) "
+                   "(repeatable; default both: COLMAP's 8192 and ~50k with peak_threshold 0.002)")
+    b.add_argument("--methods", default=None, help="sfm: comma-separated subset of colmap, colmap_guided, "
+                   "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap")
+    b.add_argument("--threads", type=_positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
+    b.add_argument("--work", default=None, help="sfm: folder for the databases and models (default OUT/work; "
+                   "extracted features are reused by a rerun)")
+    b.add_argument("--merge", action="store_true", help="sfm: keep the rows of an existing OUT/sfm.json that this run "
+                   "does not redo (e.g. after --methods X)")
+    b.add_argument("--no-e2e", action="store_true", help="sfm: skip the end-to-end comparison (guidedmatch sfm vs "
+                   "the pycolmap pipeline with COLMAP's matcher)")
     b.set_defaults(func=cmd_bench)
 
+    s = sub.add_parser("sfm", help="photos -> COLMAP sparse model (extraction, guided matching, incremental mapping)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Structure from motion with guidedmatch as the matcher: pycolmap SIFT extraction "
+                       "(or our detectors), collection matching into OUT_DIR/database.db, pycolmap.incremental_mapping "
+                       "into OUT_DIR/sparse/0, report.json / report.md / reconstruction.png. Resumable: a rerun "
+                       "reuses extracted features and matched pairs and redoes the mapping.",
+                       epilog="examples:\n"
+                       "  guidedmatch sfm photos/ project/\n"
+                       "  guidedmatch sfm photos/ project/ --pairs sequential:10 --workers 4\n"
+                       "  guidedmatch sfm photos/ project/ --camera PINHOLE:2759.5,2764.2,1520.7,1006.8\n"
+                       "  guidedmatch sfm photos/ project/ --detector ours:orb --max-features 4000\n"
+                       "  colmap gui --database_path project/database.db --image_path photos/ --import_path project/sparse/0")
+    s.add_argument("image_dir", help="folder of images (searched recursively; names relative to it)")
+    s.add_argument("out_dir", help="project folder (created; database.db, sparse/, report.*)")
+    s.add_argument("--detector", default="colmap", help="colmap (pycolmap SIFT, default) or ours:sift|orb|akaze|brisk")
+    s.add_argument("--max-features", type=_positive_int, default=None, help="features per image (default: "
+                   "8192 for COLMAP SIFT, unlimited for ours)")
+    s.add_argument("--max-image-size", type=_positive_int, default=None, help="downscale so the longer side is at "
+                   "most this before extraction (default: 3200 for COLMAP, none for ours)")
+    s.add_argument("--peak-threshold", type=float, default=None, help="COLMAP SIFT peak threshold (default "
+                   "0.0067; 0.002 gives ~5x more features)")
+    s.add_argument("--camera", default=None, metavar="MODEL:PARAMS", help="known intrinsics for every image, e.g. "
+                   "PINHOLE:fx,fy,cx,cy (held fixed in bundle adjustment)")
+    s.add_argument("--single-camera", action="store_true", help="all images share one (estimated) camera")
+    s.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model when intrinsics are "
+                   "estimated (default SIMPLE_RADIAL)")
+    s.add_argument("--pairs", default="exhaustive", help="exhaustive (default), sequential, sequential:K, or a "
+                   "file of 'name1 name2' lines")
+    s.add_argument("--mode", default="so+epi+ia", choices=MODES, help="matching mode (default so+epi+ia)")
+    s.add_argument("--config", action="append", metavar="KEY=VALUE", help="matcher config override (repeatable)")
+    s.add_argument("--geometry", default="ours", choices=("ours", "colmap"), help="two-view geometry: ours "
+                   "(the matcher's verdict, default) or colmap (pycolmap's verification)")
+    s.add_argument("--workers", type=int, default=None, help="matching worker processes (default: auto; 0 = in this process)")
+    s.add_argument("--scheduler", default=None, metavar="ADDRESS", help="match on a running Dask cluster")
+    s.add_argument("--threads", type=int, default=-1, help="COLMAP extraction/mapping threads (default -1 = all)")
+    s.add_argument("--seed", type=int, default=0, help="mapper random seed (default 0)")
+    s.add_argument("--quiet", action="store_true", help="no progress output")
+    s.add_argument("--colmap-log", action="store_true", help="show COLMAP's INFO log lines (extraction, mapping)")
+    s.set_defaults(func=cmd_sfm)
     add_collection_commands(sub)
     return p
 

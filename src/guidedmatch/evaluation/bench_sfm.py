@@ -1,0 +1,406 @@
+"""``guidedmatch bench sfm``: COLMAP's matcher vs guidedmatch inside COLMAP's own mapper, judged on GT poses.
+
+Protocol (issue 13), per feature setting (COLMAP's default 8192 SIFT features; ~50k with peak_threshold 0.002):
+
+1. extract pycolmap SIFT once into a database (CPU, ``--threads`` threads); every method gets a *copy* of it,
+   so all methods see the same keypoints and descriptors;
+2. match + verify on the copy (timed together):
+   * ``colmap``: ``pycolmap.match_exhaustive`` (CPU SIFT matcher, ratio 0.8, cross-check, RANSAC verification);
+   * ``colmap_guided``: the same with ``guided_matching=True``;
+   * ``<mode>+ours``: :func:`guidedmatch.collection.engine.match_collection` (exhaustive pairs) writing our two-view
+     geometries directly (``ColmapSink(geometry="ours")``);
+   * ``<mode>+colmap``: the same matches, verified by pycolmap (``ColmapSink(geometry="colmap")`` + ``verify``);
+3. ``pycolmap.incremental_mapping`` (timed), largest model;
+4. relative pose errors over all image pairs against the Strecha GT cameras (:mod:`guidedmatch.evaluation.poses`).
+
+Columns: match + verify time, verified pairs / inliers, registered images, 3-D points, mapping time, median pose
+error, AUC@1/2/5 deg. Writes ``sfm.json`` (with run metadata), ``sfm.md`` and ``sfm_time_vs_inliers.png``.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .poses import evaluate_poses, poses_from_reconstruction, read_strecha_cameras
+
+#: Feature settings: name -> (max_num_features, peak_threshold or None for COLMAP's default).
+FEATURE_SETTINGS = {"8192": (8192, None), "50k": (65536, 0.002)}
+#: Methods in table order.
+COLMAP_METHODS = ("colmap", "colmap_guided")
+OUR_MODES = ("so+epi+ia", "epi")
+GEOMETRIES = ("ours", "colmap")
+DEFAULT_SCENE = Path("pose_pairs") / "strecha" / "Herz-Jesus-P8"
+
+
+def method_names(modes=OUR_MODES, geometries=GEOMETRIES, colmap=COLMAP_METHODS) -> list[str]:
+    return list(colmap) + [f"{m}+{g}" for m in modes for g in geometries]
+
+
+def default_methods(setting: str) -> list[str]:
+    """Every method at 8192 features; at ~50k without COLMAP's guided matching (its guided step evaluates a dense
+    N1 x N2 geometry matrix per pair: 65 s at 8192 in the issue's measurement, ~40x that at 50k)."""
+    names = method_names()
+    return names if setting == "8192" else [m for m in names if m != "colmap_guided"]
+
+
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def extract_database(image_dir: Path, db: Path, setting: str, threads: int) -> dict:
+    """Stage 1 (cached: an existing database with keypoints for every image is reused)."""
+    from ..sfm import _db_image_names, extract_colmap_sift, list_images
+
+    names = list_images(image_dir)
+    if db.exists():
+        have = _db_image_names(db)
+        if all(have.get(n, 0) > 0 for n in names):
+            return {"time_s": None, "cached": True, "keypoints": sum(have.values()),
+                    "per_image": [have[n] for n in names]}
+        db.unlink()
+    max_features, peak = FEATURE_SETTINGS[setting]
+    t0 = time.perf_counter()
+    extract_colmap_sift(db, image_dir, names, max_features=max_features, peak_threshold=peak, num_threads=threads)
+    elapsed = time.perf_counter() - t0
+    have = _db_image_names(db)
+    return {"time_s": elapsed, "cached": False, "keypoints": sum(have.values()), "per_image": [have[n] for n in names]}
+
+
+def match_colmap(db: Path, guided: bool, threads: int) -> dict:
+    """``pycolmap.match_exhaustive`` (CPU) on ``db``; returns the timed record."""
+    import pycolmap
+
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = threads
+    mo.use_gpu = False
+    mo.guided_matching = guided
+    t0 = time.perf_counter()   # verification: COLMAP's defaults (RANSAC single-threaded per pair, pairs in parallel)
+    pycolmap.match_exhaustive(str(db), matching_options=mo, device=pycolmap.Device.cpu)
+    return {"match_verify_s": time.perf_counter() - t0, "match_s": None, "verify_s": None}
+
+
+def match_ours(db: Path, mode: str, geometry: str, threads: int, matcher: dict | None = None,
+               workers: int | None = None) -> dict:
+    """The collection engine over all pairs of ``db`` with ``mode``; ``geometry`` "ours" or "colmap"."""
+    import pycolmap
+
+    from ..collection.engine import CollectionConfig, match_collection
+    from ..collection.pairs import exhaustive_pairs
+    from ..collection.sinks import ColmapSink
+    from ..collection.sources import ColmapSource
+    from ..config import MatcherConfig
+
+    source = ColmapSource(db)
+    try:
+        pairs = exhaustive_pairs(source.names())
+        conf = CollectionConfig(mode=mode, matcher=MatcherConfig(**(matcher or {})), workers=workers, progress=False)
+        t0 = time.perf_counter()
+        with ColmapSink(db, geometry=geometry) as sink:
+            report = match_collection(source, pairs.pairs, sink, conf)
+            t_match = time.perf_counter() - t0
+            t1 = time.perf_counter()
+            if geometry == "colmap":
+                sink.verify(pycolmap.TwoViewGeometryOptions())
+        t_verify = time.perf_counter() - t1
+    finally:
+        source.close()
+    return {"match_verify_s": t_match + (t_verify if geometry == "colmap" else 0.0), "match_s": t_match,
+            "verify_s": t_verify if geometry == "colmap" else None, "failed_pairs": len(report.failed),
+            "collection_totals": report.totals}
+
+
+def warm_up(db: Path, modes=OUR_MODES) -> None:
+    """Compile / load the Numba kernels for this database's descriptor type once (in this process, which writes the
+    on-disk cache the engine's worker processes then load), on 3000 features of two of its images, so that no timed
+    method pays for compilation."""
+    from ..collection.sources import ColmapSource
+    from ..matcher import match
+
+    with ColmapSource(db) as src:
+        a, b = src.names()[:2]
+        f1, f2 = src.load(a), src.load(b)
+    f1, f2 = f1.subset(np.arange(min(3000, len(f1)))), f2.subset(np.arange(min(3000, len(f2))))
+    for mode in modes:
+        match(f1, f2, mode=mode)
+
+
+def evaluate_database(db: Path, image_dir: Path, gt: dict, work: Path, threads: int, seed: int) -> dict:
+    """Verified inliers of ``db``, then incremental mapping and the pose evaluation of its largest model."""
+    import pycolmap
+
+    from ..sfm import run_mapping, verified_inliers
+
+    vpairs, inliers = verified_inliers(db)
+    mapping = run_mapping(db, image_dir, work / "sparse", num_threads=threads, seed=seed)
+    out = {"verified_pairs": vpairs, "verified_inliers": inliers, "mapping_s": mapping["time_s"],
+           "models": len(mapping["models"])}
+    if mapping["models"]:
+        best = mapping["models"][0]
+        rec = pycolmap.Reconstruction(str(work / "sparse" / "0"))
+        ev = evaluate_poses(poses_from_reconstruction(rec), gt)
+        out.update(registered=best["registered"], points3D=best["points3D"],
+                   mean_track_length=best["mean_track_length"],
+                   mean_reprojection_error_px=best["mean_reprojection_error_px"], poses=ev.to_dict(),
+                   median_pose_error_deg=ev.median_error_deg, auc=ev.auc)
+    else:
+        ev = evaluate_poses({}, gt)
+        out.update(registered=0, points3D=0, poses=ev.to_dict(), median_pose_error_deg=ev.median_error_deg, auc=ev.auc)
+    return out
+
+
+def run_method(method: str, base_db: Path, image_dir: Path, gt: dict, work: Path, threads: int, seed: int,
+               matcher: dict | None = None, workers: int | None = None) -> dict:
+    """One row: copy the base database, match + verify with ``method``, map, evaluate."""
+    mdir = work / method.replace("+", "_")
+    if mdir.exists():
+        shutil.rmtree(mdir)
+    mdir.mkdir(parents=True)
+    db = mdir / "database.db"
+    shutil.copyfile(base_db, db)
+    if method in COLMAP_METHODS:
+        rec = match_colmap(db, guided=(method == "colmap_guided"), threads=threads)
+    else:
+        mode, geometry = method.rsplit("+", 1)
+        rec = match_ours(db, mode, geometry, threads, matcher=matcher, workers=workers)
+    rec.update(evaluate_database(db, image_dir, gt, mdir, threads, seed))
+    rec["method"] = method
+    return rec
+
+
+def end_to_end(image_dir: Path, gt: dict, work: Path, threads: int, seed: int) -> list[dict]:
+    """``guidedmatch sfm`` (defaults: COLMAP SIFT at 8192, so+epi+ia, our geometry) vs the same pipeline with
+    COLMAP's matcher (extract + ``match_exhaustive`` + mapping), each from an empty folder, wall time per stage."""
+    from ..sfm import SfmConfig, extract_colmap_sift, list_images, run_mapping, run_sfm
+
+    rows = []
+    d = work / "e2e_guidedmatch"
+    if d.exists():
+        shutil.rmtree(d)
+    t0 = time.perf_counter()
+    rep = run_sfm(image_dir, d, SfmConfig(num_threads=threads, seed=seed, progress=False), command="bench sfm e2e")
+    total = time.perf_counter() - t0
+    st = rep["stages"]
+    ev = evaluate_poses(poses_from_reconstruction(str(d / "sparse" / "0")), gt) if rep["registered"] else None
+    rows.append({"pipeline": "guidedmatch sfm", "total_s": total, "extraction_s": st["extraction"]["time_s"],
+                 "matching_s": st["matching"]["time_s"], "mapping_s": st["mapping"]["time_s"],
+                 "verified_inliers": st["matching"]["verified_inliers"], "registered": rep["registered"],
+                 "points3D": rep["points3D"], "median_pose_error_deg": ev.median_error_deg if ev else None,
+                 "auc": ev.auc if ev else None})
+    d = work / "e2e_colmap"
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    db = d / "database.db"
+    t0 = time.perf_counter()
+    extract_colmap_sift(db, image_dir, list_images(image_dir), num_threads=threads)
+    t1 = time.perf_counter()
+    match_colmap(db, guided=False, threads=threads)
+    t2 = time.perf_counter()
+    from ..sfm import verified_inliers
+
+    inl = verified_inliers(db)[1]
+    t3 = time.perf_counter()
+    mapping = run_mapping(db, image_dir, d / "sparse", num_threads=threads, seed=seed)
+    t4 = time.perf_counter()
+    ev = evaluate_poses(poses_from_reconstruction(str(d / "sparse" / "0")), gt) if mapping["models"] else None
+    best = mapping["models"][0] if mapping["models"] else {}
+    rows.append({"pipeline": "pycolmap: extract + match_exhaustive + incremental_mapping",
+                 "total_s": (t2 - t0) + (t4 - t3), "extraction_s": t1 - t0, "matching_s": t2 - t1,
+                 "mapping_s": t4 - t3, "verified_inliers": inl, "registered": best.get("registered", 0),
+                 "points3D": best.get("points3D", 0), "median_pose_error_deg": ev.median_error_deg if ev else None,
+                 "auc": ev.auc if ev else None})
+    return rows
+
+
+def e2e_table(rows: list[dict]) -> str:
+    out = ["| pipeline (from an empty folder) | total (s) | extraction (s) | matching + geometry (s) | mapping (s) | "
+           "verified inliers | registered | 3D points | median pose error | AUC@1° |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        med = "–" if r["median_pose_error_deg"] is None else f"{r['median_pose_error_deg']:.3f}°"
+        auc1 = "–" if not r["auc"] else f"{r['auc']['1']:.3f}"
+        out.append(f"| {r['pipeline']} | {r['total_s']:.1f} | {r['extraction_s']:.1f} | {r['matching_s']:.1f} | "
+                   f"{r['mapping_s']:.1f} | {r['verified_inliers']:,} | {r['registered']} | {r['points3D']:,} | "
+                   f"{med} | {auc1} |")
+    return "\n".join(out)
+
+
+def _fmt(v, spec="{:.2f}"):
+    return "–" if v is None else spec.format(v)
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """One table per feature setting: the issue's columns plus mapping time, and time / inliers relative to
+    COLMAP exhaustive in the same run."""
+    out = []
+    for setting in dict.fromkeys(r["setting"] for r in rows):
+        sub = [r for r in rows if r["setting"] == setting]
+        ref = next((r for r in sub if r["method"] == "colmap" and "error" not in r), None)
+        kp = sub[0].get("keypoints")
+        out += [f"**{setting} features** ({kp:,} keypoints in {sub[0].get('images', '?')} images)" if kp else
+                f"**{setting} features**", "",
+                "| method | match + verify (s) | time / COLMAP | verified inliers | inliers / COLMAP | registered | "
+                "3D points | mapping (s) | median pose error | AUC@1°/2°/5° |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in sub:
+            if "error" in r:
+                out.append(f"| {r['method']} | failed: {r['error']} | | | | | | | | |")
+                continue
+            t = _fmt(r["match_verify_s"])
+            if r.get("verify_s") is not None:
+                t = f"{r['match_s']:.2f} + {r['verify_s']:.2f}"
+            rt = f"{r['match_verify_s'] / ref['match_verify_s']:.2f}" if ref else "–"
+            ri = f"{r['verified_inliers'] / max(1, ref['verified_inliers']):.2f}x" if ref else "–"
+            auc = " / ".join(f"{v:.3f}" for v in r["auc"].values())
+            med = r["median_pose_error_deg"]
+            out.append(f"| {r['method']} | {t} | {rt} | {r['verified_inliers']:,} | {ri} | "
+                       f"{r['registered']}/{r.get('images', '?')} | {r['points3D']:,} | {r['mapping_s']:.1f} | "
+                       f"{'inf' if med is None or med == float('inf') else f'{med:.3f}°'} | {auc} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def plot_time_vs_inliers(rows: list[dict], path: Path) -> Path:
+    """Match + verify time (log x) vs verified inliers, one marker per method and feature setting."""
+    from ..plots import _plt, save_figure
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    markers = {"8192": "o", "50k": "s"}
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    colors = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(methods)}
+    seen = set()
+    for r in rows:
+        if "error" in r:
+            continue
+        ax.scatter(r["match_verify_s"], r["verified_inliers"], marker=markers.get(r["setting"], "^"),
+                   color=colors[r["method"]], s=60, label=None if r["method"] in seen else r["method"])
+        seen.add(r["method"])
+        ax.annotate(r["method"], (r["match_verify_s"], r["verified_inliers"]), fontsize=7, xytext=(4, 3),
+                    textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("match + verify time (s, log)")
+    ax.set_ylabel("verified inlier matches (all pairs)")
+    ax.set_title("Herz-Jesus-P8: time vs verified inliers (o = 8192 features, s = ~50k)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    return save_figure(fig, path)
+
+
+def _merge_rows(new: list[dict], old: list[dict]) -> list[dict]:
+    """``new`` plus the rows of ``old`` for (setting, method) not in ``new``, in table order."""
+    done = {(r["setting"], r["method"]) for r in new}
+    order = {key: i for i, key in enumerate((st, m) for st in FEATURE_SETTINGS for m in method_names())}
+    rows = list(new) + [r for r in old if (r["setting"], r["method"]) not in done]
+    return sorted(rows, key=lambda r: order.get((r["setting"], r["method"]), len(order)))
+
+
+def run(*args, colmap_log: bool = False, **kwargs) -> dict:
+    """:func:`run_benchmark` with COLMAP's INFO log lines silenced unless ``colmap_log``."""
+    from ..sfm import colmap_log_level
+
+    with colmap_log_level(0 if colmap_log else 1):
+        return run_benchmark(*args, **kwargs)
+
+
+def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None, threads: int = 2, seed: int = 0,
+        matcher: dict | None = None, workers: int | None = None, command: str = "", e2e: bool = True,
+        work: Path | None = None, merge: bool = False) -> dict:
+    """Run the benchmark; writes ``out/sfm.json``, ``out/sfm.md``, ``out/sfm_time_vs_inliers.png``. Databases and
+    models go to ``work`` (default ``out/work``; the extracted features of each setting are reused by a rerun).
+    ``merge``: keep the rows (and end-to-end rows) of an existing ``out/sfm.json`` that this run does not redo; each
+    row carries its own ``timestamp_utc``."""
+    from ..errors import InputError
+    from ..features import atomic_write_text
+    from .meta import run_metadata, write_json
+
+    image_dir, cam_dir = scene / "images", scene / "gt_dense_cameras"
+    if not image_dir.is_dir() or not cam_dir.is_dir():
+        raise InputError(f"{scene}: expected images/ and gt_dense_cameras/ (Strecha layout)")
+    gt = read_strecha_cameras(cam_dir)
+    explicit = methods is not None
+    work = Path(work) if work is not None else out / "work"
+    rows = []
+    results = {"meta": run_metadata(seed), "command": command, "scene": str(scene), "threads": threads,
+               "methods": methods, "settings": list(settings), "rows": rows, "end_to_end": None,
+               "note": "wall-clock times on a machine shared with other jobs (2 cores); same features for all methods"}
+    old_rows, old_e2e = [], None
+    if merge and (out / "sfm.json").is_file():
+        old = json.loads((out / "sfm.json").read_text())
+        old_rows, old_e2e = old.get("rows", []), old.get("end_to_end")
+        results["merged_from"] = old.get("meta", {}).get("timestamp_utc")
+    for setting in settings:
+        base = work / setting / "features.db"
+        base.parent.mkdir(parents=True, exist_ok=True)
+        _say(f"[{setting}] extracting pycolmap SIFT ({threads} threads)")
+        ext = extract_database(image_dir, base, setting, threads)
+        results.setdefault("extraction", {})[setting] = ext
+        todo = list(methods) if explicit else default_methods(setting)
+        if any(m not in COLMAP_METHODS for m in todo):
+            warm_up(base, modes=sorted({m.rsplit("+", 1)[0] for m in todo if m not in COLMAP_METHODS}))
+        for method in todo:
+            _say(f"[{setting}] {method}")
+            try:
+                r = run_method(method, base, image_dir, gt, work / setting, threads, seed, matcher, workers)
+            except Exception as exc:  # noqa: BLE001 - recorded in the table; the other methods still run
+                import traceback
+
+                r = {"method": method, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+            r.update(setting=setting, keypoints=ext["keypoints"], images=len(gt),
+                     timestamp_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+            rows.append(r)
+            if "error" in r:
+                _say(f"    failed: {r['error']}")
+            else:
+                _say(f"    {r['match_verify_s']:.2f} s, {r['verified_inliers']:,} inliers, {r['registered']}/{len(gt)} "
+                     f"registered, {r['points3D']:,} points, median {r['median_pose_error_deg']:.3f} deg, "
+                     f"AUC@1 {r['auc']['1']:.3f}")
+            write_json(out / "sfm.json", dict(results, rows=_merge_rows(rows, old_rows), end_to_end=old_e2e))
+    rows[:] = _merge_rows(rows, old_rows)
+    results["end_to_end"] = old_e2e
+    if e2e:
+        _say("[e2e] guidedmatch sfm vs the pycolmap pipeline with COLMAP's matcher, from empty folders")
+        results["end_to_end"] = end_to_end(image_dir, gt, work, threads, seed)
+        write_json(out / "sfm.json", results)
+    md = ["# guidedmatch in COLMAP: Herz-Jesus-P8 sfm benchmark", "",
+          f"`{command}` -- {results['meta'].get('timestamp_utc')}, commit `{(results['meta'].get('git_commit') or '')[:10]}`, "
+          f"{results['meta'].get('cpu_model')}, {threads} threads. The machine was shared with other jobs: times are "
+          "indicative, inlier counts and poses are exact for this run.", "", markdown_table(rows),
+          *(["**End to end** (8192 features, defaults of `guidedmatch sfm`)", "", e2e_table(results["end_to_end"]), ""]
+            if results["end_to_end"] else []),
+          "![time vs inliers](sfm_time_vs_inliers.png)", ""]
+    atomic_write_text(out / "sfm.md", "\n".join(md))
+    plot_time_vs_inliers(rows, out / "sfm_time_vs_inliers.png")
+    write_json(out / "sfm.json", results)
+    return results
+
+
+def main(args) -> int:
+    """Entry of ``guidedmatch bench sfm`` (arguments from the CLI parser)."""
+    from ..datasets import data_root
+
+    scene = Path(args.scene) if getattr(args, "scene", None) else None
+    if scene is None:
+        root = data_root(getattr(args, "data", None))
+        if root is None:
+            from ..errors import InputError
+
+            raise InputError("no scene given and no data folder found (set GUIDEDMATCH_DATA or pass --scene)")
+        scene = root / DEFAULT_SCENE
+    settings = args.features or ["8192", "50k"]
+    methods = args.methods.split(",") if getattr(args, "methods", None) else None
+    if methods:
+        bad = [m for m in methods if m not in COLMAP_METHODS and m.rsplit("+", 1)[-1] not in GEOMETRIES]
+        if bad:
+            from ..errors import ConfigError
+
+            raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(method_names())}")
+    res = run(scene, Path(args.out), settings=settings, methods=methods, threads=args.threads, seed=args.seed,
+              command="guidedmatch " + " ".join(sys.argv[1:]), e2e=not args.no_e2e, work=args.work, merge=args.merge)
+    print(markdown_table(res["rows"]))
+    return 0

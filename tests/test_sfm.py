@@ -1,0 +1,219 @@
+"""guidedmatch sfm: bad inputs refused before work (exit 2, one line); config checks; the figure; end to end on a
+rendered multi-view collection with known poses (every view registered, poses near the rendered cameras), report
+files, resume."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from guidedmatch.errors import ConfigError
+from guidedmatch.sfm import SfmConfig, check_images, list_images, parse_camera
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+
+
+def run_cli(*args, timeout=600):
+    env = {"PYTHONPATH": SRC, "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1",
+           "OPENBLAS_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-m", "guidedmatch.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+def _noise_png(path: Path, seed: int, size=(160, 120)):
+    rng = np.random.default_rng(seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.GaussianBlur(rng.integers(0, 255, (size[1], size[0]), np.uint8), (0, 0), 1.5))
+
+
+def _one_error_line(proc):
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("guidedmatch: error:"), proc.stderr
+    assert "Traceback" not in proc.stderr
+    return lines[0]
+
+
+def test_empty_folder(tmp_path):
+    (tmp_path / "img").mkdir()
+    (tmp_path / "img" / "notes.txt").write_text("not an image")
+    line = _one_error_line(run_cli("sfm", tmp_path / "img", tmp_path / "out"))
+    assert "no images" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_folder(tmp_path):
+    line = _one_error_line(run_cli("sfm", tmp_path / "nope", tmp_path / "out"))
+    assert "not found" in line
+
+
+def test_one_image(tmp_path):
+    _noise_png(tmp_path / "img" / "a.png", 0)
+    (tmp_path / "img" / "b.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")   # unreadable: only 1 readable image
+    line = _one_error_line(run_cli("sfm", tmp_path / "img", tmp_path / "out"))
+    assert "at least 2 readable images" in line and "b.png" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_foreign_database_refused(tmp_path):
+    import pycolmap
+
+    for i in range(3):
+        _noise_png(tmp_path / "img" / f"{i}.png", i)
+    out = tmp_path / "out"
+    out.mkdir()
+    db = pycolmap.Database.open(str(out / "database.db"))
+    cam = pycolmap.Camera.create_from_model_name(0, "SIMPLE_RADIAL", 100.0, 160, 120)
+    cid = db.write_camera(cam)
+    db.write_image(pycolmap.Image(name="elsewhere.jpg", camera_id=cid))
+    db.close()
+    before = (out / "database.db").read_bytes()
+    line = _one_error_line(run_cli("sfm", tmp_path / "img", out))
+    assert "another project" in line or "not made by" in line
+    assert (out / "database.db").read_bytes() == before
+    assert sorted(p.name for p in out.iterdir()) == ["database.db"]
+
+
+def test_project_of_another_folder_refused(tmp_path):
+    for d in ("a", "b"):
+        for i in range(2):
+            _noise_png(tmp_path / d / f"{i}.png", i)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "database.db").write_bytes(b"")
+    (out / "sfm_project.json").write_text(json.dumps({"image_dir": str((tmp_path / "a").resolve())}))
+    line = _one_error_line(run_cli("sfm", tmp_path / "b", out))
+    assert "belongs to the images in" in line
+
+
+@pytest.mark.parametrize("kw", [dict(detector="ours:surf"), dict(detector="sift"), dict(max_features=0),
+                                dict(camera="PINHOLE:1,2,3"), dict(camera="FISHEYE:1,2,3,4"),
+                                dict(camera="PINHOLE:-1,1,1,1"), dict(geometry="both"), dict(mode="fast"),
+                                dict(num_threads=0), dict(peak_threshold=0.002, detector="ours:sift"),
+                                dict(matcher={"no_such_field": 1}), dict(pairs="")])
+def test_config_errors(kw):
+    with pytest.raises(ConfigError):
+        SfmConfig(**kw)
+
+
+def test_bad_option_via_cli_is_one_line(tmp_path):
+    for i in range(2):
+        _noise_png(tmp_path / "img" / f"{i}.png", i)
+    line = _one_error_line(run_cli("sfm", tmp_path / "img", tmp_path / "out", "--camera", "PINHOLE:1,2"))
+    assert "PINHOLE takes 4" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_parse_camera_and_listing(tmp_path):
+    assert parse_camera("simple_pinhole:500,320,240") == ("SIMPLE_PINHOLE", [500.0, 320.0, 240.0])
+    _noise_png(tmp_path / "x" / "b.PNG", 1)
+    _noise_png(tmp_path / "a.png", 2)
+    (tmp_path / "K.txt").write_text("1 0 0")
+    assert list_images(tmp_path) == ["a.png", "x/b.PNG"]
+    (tmp_path / "c.jpg").write_bytes(b"\xff\xd8\xff garbage")
+    good, skipped = check_images(tmp_path)
+    assert good == ["a.png", "x/b.PNG"] and [s["name"] for s in skipped] == ["c.jpg"]
+
+
+def test_plot_reconstruction(tmp_path):
+    """The figure from a synthetic pycolmap model (two cameras, a few points)."""
+    import pycolmap
+
+    from guidedmatch.sfm import plot_reconstruction
+
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_PINHOLE", 100.0, 200, 100)
+    rec.add_camera_with_trivial_rig(cam)
+    for i in range(2):
+        img = pycolmap.Image(name=f"{i}.png", camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([-float(i), 0, 0])))
+    for k in range(50):
+        rec.add_point3D(np.array([k * 0.01, 0.1, 3.0]), pycolmap.Track())
+    p = plot_reconstruction(tmp_path / "r.png", rec, title="t")
+    assert p.stat().st_size > 5000
+
+
+# --------------------------------------------------------------------------- end to end (rendered collection)
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """5 rendered views (640x480, known K / R / t) plus one unreadable file among them."""
+    mv = pytest.importorskip("guidedmatch.testing.multiview")
+    scene = mv.make_multiview(n_views=5, size=(640, 480), seed=0, isolated=False)
+    folder = tmp_path_factory.mktemp("mv") / "images"
+    mv.write_views(scene, folder)
+    (folder / "zz_broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 64)
+    return scene, folder
+
+
+def _known_camera(scene):
+    K = scene.K   # OpenCV pixel convention; COLMAP's principal point is + 0.5
+    return f"PINHOLE:{K[0, 0]:.6g},{K[1, 1]:.6g},{K[0, 2] + 0.5:.6g},{K[1, 2] + 0.5:.6g}"
+
+
+def test_sfm_end_to_end_and_resume(rendered, tmp_path):
+    """Our detector + known intrinsics: every view registered, every pair's relative pose within 0.5 deg of the
+    rendered cameras; the unreadable file skipped and reported; a rerun reuses features and pairs."""
+    pytest.importorskip("guidedmatch.collection.engine")
+    import pycolmap
+
+    from guidedmatch.evaluation.poses import CameraPose, evaluate_poses
+
+    scene, folder = rendered
+    out = tmp_path / "proj"
+    args = ("sfm", folder, out, "--detector", "ours:sift", "--camera", _known_camera(scene), "--threads", "2",
+            "--workers", "0", "--quiet")
+    proc = run_cli(*args)
+    assert proc.returncode == 0, proc.stderr
+    for f in ("database.db", "report.json", "report.md", "reconstruction.png", "sparse/0/cameras.bin",
+              "sparse/0/images.bin", "sparse/0/points3D.bin"):
+        assert (out / f).is_file(), f
+    rep = json.loads((out / "report.json").read_text())
+    assert [s["name"] for s in rep["skipped_images"]] == ["zz_broken.png"]
+    assert rep["num_images"] == 5 and rep["registered"] == 5 and rep["unregistered"] == []
+    assert rep["stages"]["extraction"]["extracted"] == 5
+    assert rep["stages"]["matching"]["collection"]["done"] == 10
+    assert rep["stages"]["mapping"]["models"][0]["mean_reprojection_error_px"] < 1.0
+    assert "zz_broken.png" in (out / "report.md").read_text()
+
+    gt = {n: CameraPose(R, t) for n, R, t in zip(scene.names, scene.R, scene.t)}
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    ev = evaluate_poses(rec, gt)
+    assert ev.num_registered == 5
+    worst = max(r["error_deg"] for r in ev.per_pair)
+    assert worst < 0.5, ev.summary()
+
+    # rerun: nothing extracted or matched again, the model is rebuilt
+    proc = run_cli(*args)
+    assert proc.returncode == 0, proc.stderr
+    rep2 = json.loads((out / "report.json").read_text())
+    assert rep2["stages"]["extraction"]["extracted"] == 0 and rep2["stages"]["extraction"]["reused"] == 5
+    assert rep2["stages"]["matching"]["collection"]["done"] == 0
+    assert rep2["stages"]["matching"]["collection"]["skipped"] == 10
+    assert rep2["registered"] == 5
+
+    # other matching settings on the same project: refused before any work, the database untouched
+    from guidedmatch.sfm import database_pair_stats
+
+    before = database_pair_stats(out / "database.db")   # (opening with pycolmap bumps SQLite's change counter)
+    line = _one_error_line(run_cli(*args, "--mode", "epi"))
+    assert "were matched with" in line
+    assert database_pair_stats(out / "database.db") == before
+
+
+def test_sfm_colmap_verification_single_camera(rendered, tmp_path):
+    """COLMAP's verification of our matches, intrinsics estimated (one shared camera): every view registered."""
+    pytest.importorskip("guidedmatch.collection.engine")
+    scene, folder = rendered
+    out = tmp_path / "proj"
+    proc = run_cli("sfm", folder, out, "--detector", "ours:sift", "--single-camera", "--geometry", "colmap",
+                   "--threads", "2", "--workers", "0", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["registered"] == 5
+    assert rep["stages"]["matching"]["verified_pairs"] >= 8
+    assert rep["stages"]["matching"]["verify_time_s"] > 0
