@@ -231,6 +231,10 @@ def cmd_experiment(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    if args.which == "pairs":
+        from .evaluation import bench_pairs
+
+        return int(bench_pairs.main(args) or 0)
     try:
         from .evaluation import bench
     except ImportError as exc:
@@ -300,13 +304,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="reproduce the paper's tables side by side with the paper and peers",
                        description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
-    b.add_argument("which", choices=("oxford", "synthetic", "real", "alignment", "all"))
+    b.add_argument("which", choices=("oxford", "synthetic", "real", "alignment", "all", "pairs"))
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
     b.add_argument("--repeats", type=_positive_int, default=None, help="timing repeats per method (median)")
     b.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze", "brisk"))
     b.add_argument("--seed", type=int, default=0)
+    from .evaluation.bench_pairs import add_arguments as _pairs_arguments
+
+    _pairs_arguments(b)  # --features / --dense / --oxford of `bench pairs`
     b.set_defaults(func=cmd_bench)
     return p
 
