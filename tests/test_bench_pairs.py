@@ -178,3 +178,38 @@ def test_bench_pairs_quick_writes_consistent_json_md_png(tmp_path):
     png = tmp_path / "pairs_angle.png"
     assert png.exists() and png.stat().st_size > 10_000
     assert list((tmp_path / "features").glob("*.npz"))  # cached detections
+
+
+def _readme_tool():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "readme_results.py"
+    spec = importlib.util.spec_from_file_location("readme_results", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_readme_headline_is_generated_from_the_json_totals():
+    from guidedmatch.evaluation.bench_pairs import COLUMNS, totals
+
+    def m(t, gt, verdict, comp=100):
+        return dict(time_s=t, comparisons=comp, matches=gt + 2, gt_inliers=gt, verdict=verdict, verdict_source="matcher")
+
+    def row(name, t, angle, unrelated=False):
+        v = "no-overlap" if unrelated else "verified"
+        return dict(name=name, bf_comparisons=100, rotation_deg=angle, unrelated=unrelated,
+                    methods={c: m(t * (k + 1), 0 if unrelated else 40 + k, v) for k, c in enumerate(COLUMNS)})
+
+    scene = [row("s/0000-0001", 1.0, 3.6), row("s/0000-0007", 2.0, 42.4)]
+    unrel = [row("unrelated/0000-vs-x", 0.5, None, True)]
+    res = dict(meta=dict(git_commit="abc", cpu_model="cpu"), command="guidedmatch bench pairs", verdict_source_ours=["matcher"],
+               sets={"8192": dict(images={"a": dict(n=8192)}, rows=scene + unrel,
+                                  totals=dict(scene=totals(scene), unrelated=totals(unrel)))})
+    block = _readme_tool().pairs_headline(res)
+    assert block.startswith("<!-- pairs:start -->") and block.endswith("<!-- pairs:end -->")
+    assert "all 2 Herz-Jesus-P8 pairs (4-42° between the cameras) + 1 unrelated pairs" in block
+    # so+epi+ia: total 3.0 s, IVF search (5th column) 5x slower; slowest pair 0000-0007 = 2.0 s, BF there 6.0 s
+    assert "| **guidedmatch so+epi+ia** | 3.00 | 0.20x | 0000-0007: 2.00 (0.3x) | 80 |" in block
+    assert "1 no-overlap, 100.0 %" in block and "the matcher's own" in block

@@ -661,6 +661,7 @@ def main(args) -> int:
     res["partial"] = False
     srcs = {m["verdict_source"] for s in res["sets"].values() for r in s["rows"]
             for k, m in r["methods"].items() if k in OURS}
+    res["verdict_source_ours"] = sorted(srcs)
     if "post-hoc" in srcs:
         res["verdict_note"] = ("this matcher returns no `result.geometry`: the verdicts of our modes were computed "
                                "after timing by `guidedmatch.geometry.two_view_geometry` on the returned matches "
