@@ -447,18 +447,17 @@ def run_oxford(root, *, quick, repeats, config, progress=True) -> list[dict]:
 
 
 # --------------------------------------------------------------------------------------------- report
+_FORMATS = {"s": lambda v: f"{v:.2f}" if v >= 0.1 else f"{v:.3f}", "pct": lambda v: f"{100 * v:.1f} %",
+            "x": lambda v: f"{v:.2f}x"}
+
+
 def _f(v, kind="s"):
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "n/a"
-    if kind == "s":
-        return f"{v:.2f}" if v >= 0.1 else f"{v:.3f}"
-    if kind == "pct":
-        return f"{100 * v:.1f} %"
-    if kind == "int":
-        return f"{int(v):,}"
-    if kind == "x":
-        return f"{v:.2f}x"
-    return str(v)
+    """Table cell: seconds (3 significant-ish digits), percentage, ratio; "n/a" for None / NaN."""
+    from .bench import _fmt
+
+    if kind not in _FORMATS or v is None or not np.isfinite(v):
+        return _fmt(v, kind)
+    return _FORMATS[kind](v)
 
 
 def _short(name: str) -> str:
