@@ -57,7 +57,7 @@ def run_peer(name, f1, f2):
         r = peers.match_opencv_flann(f1, f2, ratio=0.8, trees=4, checks=64)
     else:
         raise ValueError(name)
-    return r.pairs, r.stats["time_s"]
+    return r.pairs, r.stats.time_s
 
 
 def main(argv=None):
@@ -104,20 +104,20 @@ def main(argv=None):
         times = []
         for _ in range(args.repeats):
             res = match(f1, f2, "so+epi+ia")
-            times.append(res.stats["time_s"])
+            times.append(res.stats.time_s)
         # memory in a separate, untimed run: tracemalloc slows every NumPy allocation (+20 % time at 40k)
         tracemalloc.start()
         match(f1, f2, "so+epi+ia")
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
         st = res.stats
-        record("so+epi+ia", res.pairs, times, st["comparisons"],
-               dict(timing=st["timing"], candidates_per_query=st["candidates_per_query"], fallbacks=st["fallbacks"],
-                    updates=st["updates"], peak_traced_mb=peak / 2**20,
-                    kernel_outputs_mb=5 * 8 * len(f1) / 2**20, dropped_outside_overlap=st["dropped_outside_overlap"]))
+        record("so+epi+ia", res.pairs, times, st.comparisons,
+               dict(timing=st.timing, candidates_per_query=st.candidates_per_query, fallbacks=st.fallbacks,
+                    updates=st.updates, peak_traced_mb=peak / 2**20,
+                    kernel_outputs_mb=5 * 8 * len(f1) / 2**20, dropped_outside_overlap=st.dropped_outside_overlap))
         if not args.no_bf:
             r = match_bruteforce(f1, f2)
-            record("bf", r.pairs, [r.stats["time_s"]], r.stats["comparisons"])
+            record("bf", r.pairs, [r.stats.time_s], r.stats.comparisons)
         for name in peers:
             run_peer(name, _strongest(f1, 256), _strongest(f2, 256))  # warm-up: thread pools, first-call costs
             runs = [run_peer(name, f1, f2) for _ in range(args.peer_repeats)]

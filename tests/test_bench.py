@@ -2,14 +2,12 @@ import json
 
 import pytest
 
-from guidedmatch.datasets import data_root
-
-needs_data = pytest.mark.skipif(data_root() is None, reason="evaluation data not found (set GUIDEDMATCH_DATA)")
+from guidedmatch.testing.data import OXFORD_FILES, PHOTO_FILES, STRECHA_FILES, needs_data
 
 
 @pytest.mark.data
 @pytest.mark.slow
-@needs_data
+@needs_data(*OXFORD_FILES, *STRECHA_FILES, *PHOTO_FILES)
 def test_bench_quick_writes_report_json_and_figures(tmp_path):
     from guidedmatch.cli import main
 
@@ -39,7 +37,9 @@ def test_bench_without_data_is_a_clean_error(tmp_path, capsys):
 
     rc = main(["bench", "oxford", "--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")])
     assert rc == 2
-    assert "guidedmatch: error:" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "guidedmatch: error: no evaluation data" in err and "nowhere" in err
+    assert not (tmp_path / "o").exists()  # checked before any work
 
 
 def test_summary_table_sums_like_the_paper():
@@ -52,3 +52,12 @@ def test_summary_table_sums_like_the_paper():
     t = summary_table(rows, ["bf", "so+epi+ia"])
     assert "| BF | 400 | 100.00% | 40 | 30 | 75.00% | 4.00 | 1.00 |" in t
     assert "| SO+EPI+IA | 30 | 7.50% | 30 | 26 | 86.67% | 1.00 | 0.25 |" in t
+
+
+def test_bench_unwritable_out_is_a_clean_error(tmp_path, capsys):
+    from guidedmatch.cli import main
+
+    (tmp_path / "file").write_text("x")
+    assert main(["bench", "alignment", "--out", str(tmp_path / "file" / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"guidedmatch: error: cannot write --out {tmp_path / 'file' / 'o'}: ") and "probe" not in err

@@ -68,8 +68,8 @@ def test_ivf_with_every_list_probed_is_exact_and_counts_comparisons(rng):
     assert len(ref) > 300
     np.testing.assert_array_equal(r.pairs, ref)
     # comparisons: coarse quantizer (nlist per query) + every code of the other image, both directions
-    assert r.stats["comparisons"] == 700 * (i2.nlist + 900) + 900 * (i1.nlist + 700)
-    assert r.stats["build_s"] == 0.0 and r.stats["time_s"] >= 0
+    assert r.stats.comparisons == 700 * (i2.nlist + 900) + 900 * (i1.nlist + 700)
+    assert r.stats.details["build_s"] == 0.0 and r.stats.time_s >= 0
 
 
 def test_ivf_default_probing_is_a_subset_with_fewer_comparisons(rng):
@@ -77,8 +77,8 @@ def test_ivf_default_probing_is_a_subset_with_fewer_comparisons(rng):
 
     d1, d2 = _pair_descriptors(rng, 2000, 2000, 1000)
     r = match_faiss_ivf(d1, d2)  # builds both indexes itself: their time is reported
-    assert r.stats["build_s"] > 0 and r.stats["time_s"] >= r.stats["build_s"]
-    assert r.stats["comparisons"] < 2 * 2000 * 2000 and len(r) > 500
+    assert r.stats.details["build_s"] > 0 and r.stats.time_s >= r.stats.details["build_s"]
+    assert r.stats.comparisons < 2 * 2000 * 2000 and len(r) > 500
     # cross-check: every returned pair is mutual; no image-2 feature twice
     assert len(np.unique(r.pairs[:, 1])) == len(r)
     one = match_faiss_ivf(d1, d2, index2=build_ivf_index(d2), cross_check=False)
@@ -92,7 +92,7 @@ def test_small_sets_use_a_flat_index_like_colmap(rng):
     d1, d2 = _pair_descriptors(rng, 300, 400, 200)
     assert build_ivf_index(d2).nlist == 0
     r = match_faiss_ivf(d1, d2, cross_check=False, max_distance=None)
-    assert r.stats["comparisons"] == 300 * 400
+    assert r.stats.comparisons == 300 * 400
     ref = match_faiss(d1, d2)
     assert len(ref) > 150
     np.testing.assert_array_equal(r.pairs, ref.pairs)
@@ -213,3 +213,15 @@ def test_readme_headline_is_generated_from_the_json_totals():
     # so+epi+ia: total 3.0 s, IVF search (5th column) 5x slower; slowest pair 0000-0007 = 2.0 s, BF there 6.0 s
     assert "| **guidedmatch so+epi+ia** | 3.00 | 0.20x | 0000-0007: 2.00 (0.3x) | 80 |" in block
     assert "1 no-overlap, 100.0 %" in block and "the matcher's own" in block
+
+
+@needs_strecha
+def test_bench_pairs_unwritable_out_is_a_clean_error_before_any_work(tmp_path, capsys):
+    from guidedmatch.cli import main
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    rc = main(["bench", "pairs", "--quick", "--out", str(blocker / "sub")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "guidedmatch: error:" in err and str(blocker) in err

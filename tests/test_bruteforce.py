@@ -45,7 +45,7 @@ def test_float_matches_naive_reference(n1, n2, d, ratio, mutual, seed):
     ref_p, ref_d = naive(d1, d2, ratio, mutual)
     np.testing.assert_array_equal(res.pairs, ref_p)
     np.testing.assert_allclose(res.distances, ref_d, rtol=1e-6)
-    assert res.stats["comparisons"] == n1 * n2
+    assert res.stats.comparisons == n1 * n2
 
 
 @settings(max_examples=40, deadline=None)
@@ -61,7 +61,7 @@ def test_binary_matches_naive_reference(n1, n2, nbytes, ratio, mutual, seed):
     ref_p, ref_d = naive(d1, d2, ratio, mutual)
     np.testing.assert_array_equal(res.pairs, ref_p)
     np.testing.assert_array_equal(res.distances, ref_d)
-    assert res.stats["metric"] == "hamming"
+    assert res.stats.metric == "hamming"
 
 
 def test_arbitrary_floats_agree_within_rounding(rng):
@@ -100,7 +100,7 @@ def test_empty_inputs_return_empty_result():
     for n1, n2 in ((0, 5), (5, 0), (0, 0)):
         res = match_bruteforce(np.zeros((n1, 128), np.float32), np.zeros((n2, 128), np.float32))
         assert res.pairs.shape == (0, 2) and res.distances.shape == (0,)
-        assert res.stats["comparisons"] == 0
+        assert res.stats.comparisons == 0
 
 
 def test_single_candidate_passes_ratio():
@@ -124,4 +124,4 @@ def test_accepts_features_objects(small_scene_features):
     a = match_bruteforce(f1, f2)
     b = match_bruteforce(f1.descriptors, f2.descriptors)
     np.testing.assert_array_equal(a.pairs, b.pairs)
-    assert a.stats["comparisons"] == len(f1) * len(f2)
+    assert a.stats.comparisons == len(f1) * len(f2)

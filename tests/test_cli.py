@@ -82,7 +82,7 @@ def test_guided_mode_with_config_plot_and_regions(image_files, tmp_path, capsys)
     assert rc == 0, capsys.readouterr().err
     assert (tmp_path / "regions.png").stat().st_size > 10_000
     d = read_matches(tmp_path / "m.npz")
-    assert d["stats"]["mode"] == "so+epi+ia" and d["stats"]["num_model_updates"] == 2
+    assert d["stats"]["method"] == "so+epi+ia" and d["stats"]["num_model_updates"] == 2
     assert main(["match", a, b, "--mode", "epi", "--config", "update_every=60", "--plot", str(tmp_path / "mf.png")]) == 0
     assert (tmp_path / "mf.png").exists()
 
@@ -91,7 +91,7 @@ def test_bad_config_key_and_regions_without_model(image_files, tmp_path, capsys)
     a, b = str(image_files / "a.png"), str(image_files / "b.png")
     assert main(["match", a, b, "--config", "no_such_key=1"]) == 2
     err = capsys.readouterr().err
-    assert "bad --config" in err and "band_px" in err and "Traceback" not in err
+    assert "bad --config" in err and "band_px" in err and "no_such_key" in err and "Traceback" not in err
     assert main(["match", a, b, "--mode", "bf", "--plot", str(tmp_path / "r.png"), "--show-regions"]) == 2
     assert "needs a guided mode" in capsys.readouterr().err
     assert not (tmp_path / "r.png").exists()
@@ -102,3 +102,51 @@ def test_experiment_alignment_small(tmp_path, capsys):
     assert rc == 0
     assert (tmp_path / "alignment_ratio.png").exists() and (tmp_path / "alignment_samples.csv").exists()
     assert "| " in capsys.readouterr().out  # the Markdown table is printed
+
+
+@pytest.mark.parametrize("item", ["band_px=nan", "so_threshold=-1", "so_threshold=nan", "so_threshold=NaN",
+                                  "ransac_threshold=-1", "seed=1.5", "max_distance=-1", "ransac_method=magsca",
+                                  "band_px=Infinity", "so_probability=exact"])
+def test_bad_config_exits_2_before_any_detection(item, capsys, monkeypatch, tmp_path):
+    import guidedmatch.features as features
+
+    def no_detection(*a, **k):
+        raise AssertionError("detection ran before the config was checked")
+
+    monkeypatch.setattr(features, "detect", no_detection)
+    # the images do not even exist: the config error must come first
+    rc = main(["match", str(tmp_path / "no1.png"), str(tmp_path / "no2.png"), "--config", item])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.startswith("guidedmatch: error: bad --config") and item.split("=")[0] in err
+    assert "not found" not in err and "Traceback" not in err and err.count("\n") == 1
+
+
+def test_other_exceptions_are_internal_errors_exit_1(image_files, capsys, monkeypatch):
+    import guidedmatch.matcher as matcher
+
+    def boom(*a, **k):
+        raise RuntimeError("simulated bug")
+
+    monkeypatch.setattr(matcher, "match", boom)
+    args = ["match", str(image_files / "a.png"), str(image_files / "b.png"), "--max-features", "200"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("guidedmatch: internal error: RuntimeError: simulated bug") and "Traceback" not in err
+    with pytest.raises(RuntimeError, match="simulated bug"):
+        main(["--debug"] + args)
+
+
+def test_unwritable_output_is_a_user_error_before_any_work(image_files, tmp_path, capsys, monkeypatch):
+    import guidedmatch.features as features
+
+    monkeypatch.setattr(features, "detect", lambda *a, **k: (_ for _ in ()).throw(AssertionError("detection ran")))
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    a, b = str(image_files / "a.png"), str(image_files / "b.png")
+    for args in (["match", a, b, "-o", str(blocker / "m.npz")], ["match", a, b, "--plot", str(blocker / "p.png")],
+                 ["demo", "--out", str(blocker / "demo")]):
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert err.startswith("guidedmatch: error: cannot ") and err.count("\n") == 1
+        assert str(blocker) in err and ".tmp" not in err  # names the user's path, not an internal temp file

@@ -1,9 +1,11 @@
+import math
+
 import numpy as np
 import pytest
 
 from guidedmatch.bruteforce import match_bruteforce
 from guidedmatch.features import Features, detect
-from guidedmatch.matcher import MODES, GuidedMatcher, MatcherConfig, match
+from guidedmatch.matcher import MODES, MatcherConfig, match
 
 FAST = MatcherConfig(update_every=60, num_updates=2)  # small scene: fewer correspondences per update
 
@@ -30,12 +32,12 @@ def test_every_mode_returns_valid_indices(scene_and_features, mode):
     assert len(np.unique(r.pairs[:, 0])) == len(r)  # each image-1 feature matched at most once
     for k, v in r.flags.items():
         assert len(v) == len(r), k
-    assert r.stats["comparisons"] <= len(f1) * len(f2)
+    assert r.stats.comparisons <= len(f1) * len(f2)
     if mode != "bf":
-        assert r.stats["num_model_updates"] == 2
-        assert r.stats["comparisons"] == sum(r.stats["phase_comparisons"].values())
+        assert r.stats.num_model_updates == 2
+        assert r.stats.comparisons == sum(r.stats.phase_comparisons)
         # every image-1 feature is drawn exactly once (those outside the overlap window count as drawn)
-        assert sum(r.stats["phase_queries"].values()) == len(f1)
+        assert sum(r.stats.phase_queries) == len(f1)
 
 
 def test_bf_mode_equals_bruteforce_module(scene_and_features):
@@ -54,9 +56,9 @@ def test_final_pass_pairs_lie_in_reference_candidate_sets_and_counts_are_exact(s
     final = models.final_queries
     # comparisons of the final pass == sum of independently recomputed candidate-set sizes
     ref_sizes = np.array([len(models.candidates(q)) for q in final])
-    last_phase = r.stats["num_model_updates"]
-    assert r.stats["phase_comparisons"][last_phase] == ref_sizes.sum()
-    assert r.stats["phase_comparisons"][0] == r.stats["phase_queries"][0] * len(f2)  # unguided start = BF
+    last_phase = r.stats.num_model_updates
+    assert r.stats.phase_comparisons[last_phase] == ref_sizes.sum()
+    assert r.stats.phase_comparisons[0] == r.stats.phase_queries[0] * len(f2)  # unguided start = BF
     # every final-pass match lies in its reference candidate set and is its nearest descriptor there
     fin = r.flags["phase"] == last_phase
     rng = np.random.default_rng(0)
@@ -71,7 +73,7 @@ def test_final_pass_pairs_lie_in_reference_candidate_sets_and_counts_are_exact(s
 def test_guided_cost_is_a_small_fraction_of_bruteforce(scene_and_features):
     _, f1, f2 = scene_and_features
     r = match(f1, f2, "so+epi+ia", FAST)
-    assert r.stats["comparison_ratio"] < 0.25
+    assert r.stats.comparison_ratio < 0.25
 
 
 def test_alignment_helps_on_rolled_scene(scene_and_features):
@@ -85,7 +87,7 @@ def test_binary_descriptors(scene_and_features):
     s, _, _ = scene_and_features
     f1, f2 = detect(s.image1, "orb", 3000), detect(s.image2, "orb", 3000)
     r = match(f1, f2, "so+epi+ia", FAST)
-    assert r.stats["metric"] == "hamming" and len(r) > 20
+    assert r.stats.metric == "hamming" and len(r) > 20
     assert _true(s, f1, f2, r).mean() > 0.5
 
 
@@ -103,16 +105,16 @@ def test_unusable_so_model_falls_back_and_reports(scene_and_features, monkeypatc
 
     monkeypatch.setattr(so, "fit_spatial_order", broken)
     r = match(f1, f2, "so+epi", FAST)
-    whats = [f["what"] for f in r.stats["fallbacks"]]
-    assert "spatial_order" in whats and "forced for the test" in r.stats["fallbacks"][0]["reason"]
+    whats = [f.what for f in r.stats.fallbacks]
+    assert "spatial_order" in whats and "forced for the test" in r.stats.fallbacks[0].reason
     assert len(r) > 50  # still matched (epipolar band only)
 
 
 def test_too_few_correspondences_reports_missing_updates(scene_and_features):
     _, f1, f2 = scene_and_features
     r = match(f1, f2, "so+epi+ia", MatcherConfig(update_every=100000, one_to_one=False))
-    assert r.stats["num_model_updates"] == 0
-    assert any(f["what"] == "updates" for f in r.stats["fallbacks"])
+    assert r.stats.num_model_updates == 0
+    assert any(f.what == "updates" for f in r.stats.fallbacks)
     b = match(f1, f2, "bf")
     assert len(r) == len(b)  # no model: every feature was matched against all of image 2
 
@@ -128,9 +130,9 @@ def test_empty_and_tiny_inputs_return_cleanly(n1, n2, mode):
     r = match(_feats(n1, 1), _feats(n2, 2), mode)
     assert r.pairs.shape == (len(r), 2) and len(r) <= min(n1, n2)
     # too few features for any model: every mode degrades to brute force and says so
-    assert r.stats["comparisons"] == n1 * n2
+    assert r.stats.comparisons == n1 * n2
     if mode != "bf" and n1 and n2:
-        assert any(f["what"] == "updates" for f in r.stats["fallbacks"])
+        assert any(f.what == "updates" for f in r.stats.fallbacks)
 
 
 def test_identical_images(scene_and_features):
@@ -139,8 +141,10 @@ def test_identical_images(scene_and_features):
     assert len(r) > 0.5 * len(f1)
     same = r.pairs[:, 0] == r.pairs[:, 1]
     assert same.mean() > 0.95
-    # identical images: F cannot be estimated (pure identity is degenerate) -> reported, not raised
-    assert isinstance(r.stats["fallbacks"], list)
+    # identical views: no relative pose puts the points in front of both cameras, so the alignment fails; that is
+    # reported and the run matches in original coordinates (no H2)
+    assert [f.what for f in r.stats.fallbacks].count("alignment") == r.stats.num_model_updates == 2
+    assert r.stats.alignment_H2 is None and all(u.H2 is None for u in r.stats.updates)
 
 
 def test_descriptor_mismatch_raises(scene_and_features):
@@ -152,9 +156,9 @@ def test_descriptor_mismatch_raises(scene_and_features):
 
 def test_invalid_config():
     with pytest.raises(ValueError):
-        GuidedMatcher(MatcherConfig(alignment="z"))
+        MatcherConfig(alignment="z")
     with pytest.raises(ValueError):
-        GuidedMatcher(MatcherConfig(ratio=1.5))
+        MatcherConfig(ratio=1.5)
     with pytest.raises(ValueError, match="unknown mode"):
         match(_feats(5), _feats(5), "fast")
 
@@ -165,31 +169,289 @@ def test_byte_exact_kernel_equals_float_kernel(scene_and_features, monkeypatch):
 
     _, f1, f2 = scene_and_features
     a = match(f1, f2, "so+epi+ia", FAST)
-    assert a.stats["byte_exact_kernel"]
+    assert a.stats.byte_exact_kernel
     monkeypatch.setattr(K, "as_exact_uint8", lambda d: None)
     b = match(f1, f2, "so+epi+ia", FAST)
-    assert not b.stats["byte_exact_kernel"]
+    assert not b.stats.byte_exact_kernel
     np.testing.assert_array_equal(a.pairs, b.pairs)
     np.testing.assert_allclose(a.distances, b.distances, rtol=1e-6)
-    assert a.stats["comparisons"] == b.stats["comparisons"]
+    assert a.stats.comparisons == b.stats.comparisons
 
 
-def test_band_only_rescue_is_in_the_reference_regions_and_counted_once(scene_and_features):
-    """Features outside the SO window but inside the F-inlier extent are matched in the band only; the public
-    GuidanceModels (plots, candidates()) must describe the same regions the kernel searched."""
-    from guidedmatch.matcher import search_regions
+@pytest.fixture
+def narrow_window(monkeypatch):
+    """Spatial-order models fitted on the matches of the middle half of image 1 only: ω* is narrower than the
+    x-extent of the F inliers, so the band-only rescue has work to do."""
+    import guidedmatch.spatial_order as so
+
+    real = so.fit_spatial_order
+
+    def narrowed(x1, x2, config, *, y1=None, y2=None, likely_correct=None):
+        if y1 is None:  # the per-match probabilities of the final set: unchanged
+            return real(x1, x2, config)
+        lo, hi = np.percentile(x1, [25, 75])
+        m = (x1 > lo) & (x1 < hi)
+        return real(x1[m], x2[m], config, y1=y1[m], y2=y2[m],
+                    likely_correct=None if likely_correct is None else likely_correct[m])
+
+    monkeypatch.setattr(so, "fit_spatial_order", narrowed)
+
+
+def test_band_only_rescue_matches_outside_the_window_only_in_the_band(scene_and_features, narrow_window):
+    """outside_window="band": final-pass features outside the SO window ω* but inside the x-extent of the F inliers
+    are matched in the epipolar band only (checked here with an independent line computation); "drop" never
+    matches a feature outside ω*."""
+    from guidedmatch.spatial_order import admissible_x_ranges
 
     _, f1, f2 = scene_and_features
     r, models = match(f1, f2, "so+epi+ia", FAST.replace(recheck=False), return_models=True)
-    final = models.final_queries
-    keep, lo, hi, lines, rescued = search_regions(models.pts1a[final], models.so, models.F_aligned,
-                                                  models.inlier_x1_range, "band")
-    k2, lo2, hi2, _ = models.regions(final)
-    np.testing.assert_array_equal(keep, k2)
-    np.testing.assert_array_equal(lo[keep], lo2[keep])
-    assert np.all(np.isinf(lo[rescued])) and np.all(np.isinf(hi[rescued]))
-    # rescued features are counted where they are matched, never again by the re-check
-    assert r.stats["band_only_outside_window"] <= len(f1) - r.stats["phase_queries"][0]
-    assert rescued.sum() <= r.stats["band_only_outside_window"]
-    drop = match(f1, f2, "so+epi+ia", FAST.replace(recheck=False, outside_window="drop"))
-    assert drop.stats["band_only_outside_window"] == 0
+    last = r.stats.num_model_updates
+    fin = r.flags["phase"] == last
+    i, j = r.pairs[fin, 0], r.pairs[fin, 1]
+    x1a = models.pts1a[i]
+    inside, _, _, _ = admissible_x_ranges(models.so, x1a[:, 0])
+    out = ~inside
+    assert out.sum() >= 50  # the rescue is exercised
+    lo, hi = models.inlier_x1_range
+    assert np.all((x1a[out, 0] >= lo) & (x1a[out, 0] <= hi))
+    for k in np.flatnonzero(out):
+        line = models.F_aligned @ np.array([x1a[k, 0], x1a[k, 1], 1.0])
+        x2 = models.pts2a[j[k]]
+        assert abs(line[0] * x2[0] + line[1] * x2[1] + line[2]) / np.hypot(line[0], line[1]) <= models.band_px + 1e-9
+    # the rescued final-pass queries are counted in band_only_outside_window (with those of the guided batches)
+    fq = models.final_queries
+    ok_fq, _, _, _ = admissible_x_ranges(models.so, models.pts1a[fq, 0])
+    resc = ~ok_fq & (models.pts1a[fq, 0] >= lo) & (models.pts1a[fq, 0] <= hi)
+    assert resc.sum() <= r.stats.band_only_outside_window <= len(f1) - r.stats.phase_queries[0]
+    drop, dm = match(f1, f2, "so+epi+ia", FAST.replace(recheck=False, outside_window="drop"), return_models=True)
+    assert drop.stats.band_only_outside_window == 0
+    dfin = drop.flags["phase"] == drop.stats.num_model_updates
+    inside_d, _, _, _ = admissible_x_ranges(dm.so, dm.pts1a[drop.pairs[dfin, 0], 0])
+    assert inside_d.all()
+
+
+# ------------------------------------------------------------------ slow references of the steps
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra.numpy import arrays  # noqa: E402
+
+from guidedmatch.matcher import draw_order, mutual_check, one_to_one  # noqa: E402
+
+
+def _draw_order_reference(x, width, groups, key):
+    """§III-A in plain Python: group by x-interval, each group sorted by (key, index), then round-robin."""
+    buckets = [[] for _ in range(groups)]
+    for i in sorted(range(len(x)), key=lambda i: (key[i], i)):
+        buckets[min(max(int(x[i] / width * groups), 0), groups - 1)].append(i)
+    out, r = [], 0
+    while len(out) < len(x):
+        out += [b[r] for b in buckets if r < len(b)]
+        r += 1
+    return out
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=arrays(np.float64, st.integers(0, 60), elements=st.floats(0, 99.9)),
+       groups=st.integers(1, 9), data=st.data())
+def test_draw_order_equals_reference(x, groups, data):
+    key = data.draw(arrays(np.float32, len(x), elements=st.sampled_from([-2.0, -1.0, 0.0, 0.5, 3.0])))  # many ties
+    got = draw_order(x, 100.0, groups, key)
+    assert got.dtype == np.int64
+    assert got.tolist() == _draw_order_reference(x, 100.0, groups, key)
+
+
+def _one_to_one_reference(q, j, d):
+    best = {}
+    for k in range(len(q)):
+        if j[k] not in best or (d[k], q[k]) < (d[best[j[k]]], q[best[j[k]]]):
+            best[j[k]] = k
+    return sorted(best.values())
+
+
+@settings(max_examples=200, deadline=None)
+@given(n=st.integers(0, 40), data=st.data())
+def test_one_to_one_equals_reference(n, data):
+    q = data.draw(arrays(np.int64, n, elements=st.integers(0, 1000), unique=True))
+    j = data.draw(arrays(np.int64, n, elements=st.integers(0, 6)))
+    d = data.draw(arrays(np.float32, n, elements=st.sampled_from([0.0, 1.0, 1.5, 2.0])))
+    assert one_to_one(q, j, d).tolist() == _one_to_one_reference(q, j, d)
+
+
+def _hamming_rows(a, b):
+    return np.unpackbits(a ^ b, axis=-1).sum(-1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), binary=st.booleans())
+def test_mutual_check_equals_reference(data, binary):
+    n1, n2 = data.draw(st.integers(1, 12)), data.draw(st.integers(1, 12))
+    if binary:  # packed bits, Hamming
+        d1 = data.draw(arrays(np.uint8, (n1, 2), elements=st.sampled_from([0, 1, 3, 255])))
+        d2 = data.draw(arrays(np.uint8, (n2, 2), elements=st.sampled_from([0, 1, 3, 255])))
+        dist = lambda a, b: _hamming_rows(a, b)  # noqa: E731
+    else:
+        d1 = data.draw(arrays(np.float32, (n1, 4), elements=st.integers(0, 3).map(float)))
+        d2 = data.draw(arrays(np.float32, (n2, 4), elements=st.integers(0, 3).map(float)))
+        dist = lambda a, b: ((a - b) ** 2).sum(-1)  # noqa: E731
+    m = data.draw(st.integers(0, n1))
+    q = np.arange(m, dtype=np.int64)
+    j = data.draw(arrays(np.int64, m, elements=st.integers(0, n2 - 1)))
+    sel, comps = mutual_check(d1, d2, q, j)
+    ref = [k for k in range(m) if np.argmin(dist(d1, d2[j[k]])) == q[k]]  # argmin: lowest index on ties
+    assert sel.tolist() == ref
+    assert comps == len(np.unique(j)) * n1
+
+
+@pytest.mark.parametrize("mode", ["bf", "so+epi+ia"])
+def test_mutual_means_the_full_mutual_check_in_every_mode(scene_and_features, mode):
+    _, f1, f2 = scene_and_features
+    base = match(f1, f2, mode, FAST.replace(one_to_one=False))
+    mut = match(f1, f2, mode, FAST.replace(one_to_one=False, mutual=True))
+    d1, d2 = f1.descriptors.astype(np.float64), f2.descriptors.astype(np.float64)
+    nearest_i = np.argmin((d1 ** 2).sum(1)[None, :] - 2 * d2[base.pairs[:, 1]] @ d1.T, axis=1)  # over ALL of image 1
+    ok = nearest_i == base.pairs[:, 0]
+    assert 0 < ok.sum() < len(base)
+    np.testing.assert_array_equal(mut.pairs, base.pairs[ok])
+    assert mut.stats.dropped_by_mutual == len(base) - ok.sum()
+    if mode != "bf":  # the reverse search is counted
+        assert mut.stats.comparisons == base.stats.comparisons + len(np.unique(base.pairs[:, 1])) * len(f1)
+
+
+def _in_final_region_reference(models, i, j):
+    """The final search region of (i, j), one match at a time in plain Python (§III-C x-range, §III-D band, the
+    band-only rescue), from the model's parts: admissible x-range, F_aligned, inlier x-extent."""
+    from guidedmatch.spatial_order import admissible_x_ranges
+
+    x1, y1 = models.pts1a[i]
+    x2, y2 = models.pts2a[j]
+    ok = True
+    if models.so is not None:
+        keep, lo, hi, _ = admissible_x_ranges(models.so, np.array([x1]))
+        if keep[0]:
+            ok = lo[0] <= x2 <= hi[0]
+        else:
+            r = models.inlier_x1_range
+            ok = (models.outside_window == "band" and models.F is not None and r[0] <= x1 <= r[1])
+    if models.F is not None:
+        a, b, c = models.F_aligned @ np.array([x1, y1, 1.0])
+        ok = ok and abs(a * x2 + b * y2 + c) / math.hypot(a, b) <= models.band_px
+    return ok
+
+
+def test_recheck_drops_exactly_the_early_matches_outside_the_final_region(scene_and_features):
+    _, f1, f2 = scene_and_features
+    cfg = MatcherConfig(one_to_one=False)  # 3 updates of 200: early matches of phases 0, 1, 2 to re-check
+    off, models = match(f1, f2, "so+epi+ia", cfg.replace(recheck=False), return_models=True)
+    on = match(f1, f2, "so+epi+ia", cfg)
+    last = off.stats.num_model_updates
+    keep = [k for k, (i, j) in enumerate(off.pairs)
+            if off.flags["phase"][k] == last or _in_final_region_reference(models, i, j)]
+    dropped = np.setdiff1d(np.arange(len(off)), keep)
+    assert len(dropped) >= 5 and (off.flags["phase"][dropped] > 0).any()  # guided early matches are re-checked too
+    assert not off.flags["in_band"][dropped].all()  # some dropped ones are in the band but outside the x-range
+    np.testing.assert_array_equal(on.pairs, off.pairs[keep])
+    np.testing.assert_array_equal(on.distances, off.distances[keep])
+    assert on.stats.dropped_by_recheck == len(off) - len(keep)
+    # and the one-to-one filter applied after it equals its reference
+    both = match(f1, f2, "so+epi+ia", cfg.replace(one_to_one=None))
+    sel = _one_to_one_reference(on.pairs[:, 0], on.pairs[:, 1], on.distances)
+    np.testing.assert_array_equal(both.pairs, on.pairs[sel])
+    assert both.stats.dropped_by_one_to_one == len(on) - len(sel)
+
+
+def test_forced_f_failure_is_reported_and_matching_continues(scene_and_features, monkeypatch):
+    import guidedmatch.epipolar as epi
+    from guidedmatch.results import Failure
+
+    monkeypatch.setattr(epi, "estimate_fundamental", lambda *a, **k: Failure("forced for the test"))
+    _, f1, f2 = scene_and_features
+    r = match(f1, f2, "so+epi+ia", FAST)
+    fb = [f for f in r.stats.fallbacks if f.what == "fundamental"]
+    assert [f.at_update for f in fb] == [0, 1]  # one per model update, each while fitting it
+    assert all(f.reason == "F estimation failed: forced for the test; spatial order only" for f in fb)
+    assert r.stats.F is None and r.stats.alignment_H2 is None
+    assert all(u.F_inliers is None and u.so_usable for u in r.stats.updates)
+    assert r.flags["in_band"].all() and len(r) > 50  # no band, spatial order only
+    e = match(f1, f2, "epi", FAST)  # no model at all in epi: every feature against all of image 2
+    assert e.stats.comparisons == len(f1) * len(f2)
+    assert {f.reason for f in e.stats.fallbacks if f.what == "fundamental"} == {
+        "F estimation failed: forced for the test; no epipolar guidance"}
+
+
+# ------------------------------------------------------------------ small fixtures with an obvious answer
+def _hand_features(descriptors, size=(10, 10)):
+    d = np.asarray(descriptors, np.float32)
+    xy = np.c_[np.arange(len(d), dtype=float), np.zeros(len(d))]
+    return Features.from_arrays(xy, d, size)
+
+
+def test_hand_fixture_ratio_one_to_one_and_mutual():
+    # image 2: three descriptors. image 1: feature 0 is 1 away from j=0, feature 1 is 2 away from j=0 (and far from
+    # the others), feature 2 is equally far from j=1 and j=2 (fails the ratio test), feature 3 matches j=2 exactly.
+    f2 = _hand_features([[0, 0], [10, 0], [0, 10]])
+    f1 = _hand_features([[1, 0], [-2, 0], [6, 6], [0, 10]])
+    r = match(f1, f2, "bf")  # default: bf is the ratio-test baseline, no one-to-one
+    assert r.pairs.tolist() == [[0, 0], [1, 0], [3, 2]]
+    np.testing.assert_array_equal(r.distances, [1, 2, 0])
+    o = match(f1, f2, "bf", {"one_to_one": True})  # j=0 keeps its closest image-1 feature, 0
+    assert o.pairs.tolist() == [[0, 0], [3, 2]] and o.stats.dropped_by_one_to_one == 1
+    m = match(f1, f2, "bf", {"mutual": True})  # the same by the full mutual check
+    assert m.pairs.tolist() == [[0, 0], [3, 2]]
+    assert match(f1, f2, "bf", {"ratio": None}).pairs.tolist() == [[0, 0], [1, 0], [2, 1], [3, 2]]
+    assert match(f1, f2, "bf", {"max_distance": 1.5}).pairs.tolist() == [[0, 0], [3, 2]]
+    # too few features for a model: a guided mode matches like brute force, says so, and filters one-to-one
+    g = match(f1, f2, "so+epi+ia")
+    assert g.pairs.tolist() == [[0, 0], [3, 2]] and g.stats.comparisons == 12
+    # ... and two matches carry no order structure: the per-match probabilities are NaN, and reported
+    assert [f.what for f in g.stats.fallbacks] == ["updates", "so_prob"] and np.isnan(g.flags["so_prob"]).all()
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_known_geometry_unique_descriptors_every_mode_finds_the_permutation(mode):
+    """300 points of a known 3-D two-view geometry, each with its own random descriptor, identical in both views;
+    image 2 lists them in a shuffled order. The answer is obvious: every point matches itself."""
+    from guidedmatch.testing.twoview import general_pair
+
+    s = general_pair(rng=3, n_points=300, max_angle_deg=10.0)
+    n = len(s.x1)
+    rng = np.random.default_rng(0)
+    desc = rng.integers(0, 256, (n, 32)).astype(np.float32)
+    perm = rng.permutation(n)  # image-2 feature k is point perm[k]
+    f1 = Features.from_arrays(s.x1, desc, s.size1)
+    f2 = Features.from_arrays(s.x2[perm], desc[perm], s.size2)
+    # sparse points: many bands hold only the true match, so accept single candidates here
+    cfg = MatcherConfig(update_every=40, num_updates=2, min_model_matches=16, single_candidate="accept")
+    r = match(f1, f2, mode, cfg)
+    inv = np.argsort(perm)
+    assert r.pairs[:, 1].tolist() == inv[r.pairs[:, 0]].tolist() and (r.distances == 0).all()
+    if mode == "bf":
+        assert len(r) == n and r.stats.comparisons == n * n
+        return
+    assert r.stats.num_model_updates == 2 and not r.stats.fallbacks and r.stats.comparisons < 0.5 * n * n
+    # every feature is matched, except those outside the final overlap window ω* (spatial-order modes)
+    assert len(r) + r.stats.dropped_outside_overlap == n
+    unmatched = np.setdiff1d(np.arange(n), r.pairs[:, 0])
+    if mode in ("so", "so+epi"):  # (so+epi+ia: ω* is in aligned coordinates)
+        lo, hi = r.stats.updates[-1].window1_x
+        assert np.all((s.x1[unmatched, 0] < lo) | (s.x1[unmatched, 0] > hi))
+    elif mode == "epi":
+        assert len(unmatched) == 0
+
+
+def test_flags_and_stats_are_the_same_shape_in_every_mode(scene_and_features):
+    import json
+
+    _, f1, f2 = scene_and_features
+    for mode in MODES:
+        r = match(f1, f2, mode, FAST)
+        assert list(r.flags) == ["phase", "single_candidate", "in_band", "so_prob"]
+        assert [v.dtype for v in r.flags.values()] == [np.int64, bool, bool, np.float32]
+        so = r.flags["so_prob"]
+        if mode.startswith("so"):
+            assert np.isfinite(so).all() and ((so >= 0) & (so <= 1)).all()
+        else:
+            assert np.isnan(so).all()
+        d = json.loads(json.dumps(r.stats.to_dict(), allow_nan=False))
+        assert d["method"] == mode and d["comparisons"] == r.stats.comparisons == r.stats["comparisons"]
+        assert d["num_model_updates"] == (0 if mode == "bf" else 2) and d["config"]["band_px"] == 5.0
+        assert sum(r.stats.phase_queries) == len(f1)

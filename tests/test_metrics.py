@@ -7,13 +7,13 @@ import pytest
 from guidedmatch.datasets import EpipolarGT, HomographyGT
 from guidedmatch.evaluation.meta import json_default, run_metadata, to_jsonable, write_json
 from guidedmatch.evaluation.metrics import evaluate_matches, median_time, ransac_fundamental, summarize
-from guidedmatch.results import MatchResult
+from guidedmatch.results import MatchResult, MatchStats
 
 
 def _result(pairs, comparisons=100, time_s=0.5, method="m"):
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     return MatchResult(pairs, np.arange(len(pairs), dtype=np.float32),
-                       {"comparisons": comparisons, "time_s": time_s, "method": method})
+                       MatchStats(method=method, comparisons=comparisons, time_s=time_s))
 
 
 def test_evaluate_matches_on_hand_made_input():
@@ -72,7 +72,7 @@ def test_ransac_precision_recovers_the_inlier_share(rng):
     gt, p1, p2 = _two_view(rng)
     n = len(p1)
     r = MatchResult(np.c_[np.arange(n), np.arange(n)], np.r_[np.zeros(300), np.ones(100)],
-                    {"comparisons": n * n, "time_s": 0.0})
+                    MatchStats(method="m", comparisons=n * n, time_s=0.0))
     row = evaluate_matches(r, p1, p2, gt, ransac=True)
     truth = gt.correct(p1, p2).mean()  # ~0.75 plus outliers that happen to fall near their epipolar line
     assert abs(row["ransac_precision"] - truth) < 0.03
@@ -81,7 +81,7 @@ def test_ransac_precision_recovers_the_inlier_share(rng):
     assert res and res[1][:300].mean() > 0.97
     few = ransac_fundamental(p1[:5], p2[:5])
     assert not few and "fewer than 8" in few.reason
-    row5 = evaluate_matches(MatchResult(np.c_[np.arange(5), np.arange(5)], np.zeros(5), {}), p1, p2, gt, ransac=True)
+    row5 = evaluate_matches(MatchResult(np.c_[np.arange(5), np.arange(5)], np.zeros(5), MatchStats("m", 0, 0.0)), p1, p2, gt, ransac=True)
     assert row5["ransac_inliers"] == 0 and "fewer than 8" in row5["ransac_failure"]
 
 

@@ -53,8 +53,8 @@ def test_exact_peers_equal_naive_2nn(fn, make, rng):
     got = {tuple(map(int, p)) for p in r.pairs}
     assert got == ref and len(ref) > 30
     np.testing.assert_allclose(r.distances, [ref_d[i] for i in r.pairs[:, 0]], rtol=1e-4, atol=1e-3)
-    assert r.stats["comparisons"] == len(d1) * len(d2)
-    assert r.stats["time_s"] >= 0 and r.stats["method"] in ("opencv_bf", "faiss_flat")
+    assert r.stats.comparisons == len(d1) * len(d2)
+    assert r.stats.time_s >= 0 and r.stats.method in ("opencv_bf", "faiss_flat")
     assert r.pairs.dtype == np.int64 and r.distances.dtype == np.float32
 
 
@@ -65,8 +65,8 @@ def test_flann_approximately_equals_naive_2nn(make, rng):
     r = P.match_opencv_flann(d1, d2)
     got = {tuple(map(int, p)) for p in r.pairs}
     assert len(got & ref) >= 0.8 * len(ref)
-    assert r.stats["comparisons"] is None and "unknown" in r.stats["comparisons_note"]
-    assert r.stats["index"] == ("lsh" if make is _binary else "kdtree")
+    assert r.stats.comparisons is None and "unknown" in r.stats.details["comparisons_note"]
+    assert r.stats.details["index"] == ("lsh" if make is _binary else "kdtree")
 
 
 def test_peers_accept_features_and_edge_cases(rng):
@@ -102,8 +102,8 @@ def test_gms_filters_1nn_matches_on_a_real_scene(small_scene, small_scene_featur
     s = small_scene
     gt = EpipolarGT.from_pose(s.K1, s.K2, s.R, s.t)
     r = P.match_gms(f1, f2, with_rotation=True, with_scale=False)
-    assert r.stats["comparisons"] == len(f1) * len(f2) and r.stats["with_rotation"] is True
-    assert 0 < len(r) <= r.stats["num_nn_matches"] == len(f1)
+    assert r.stats.comparisons == len(f1) * len(f2) and r.stats.details["with_rotation"] is True
+    assert 0 < len(r) <= r.stats.details["num_nn_matches"] == len(f1)
     ok = gt.correct(f1.keypoints[r.pairs[:, 0]], f2.keypoints[r.pairs[:, 1]])
     nn = P.match_opencv_bf(f1, f2, ratio=None)
     ok_nn = gt.correct(f1.keypoints[nn.pairs[:, 0]], f2.keypoints[nn.pairs[:, 1]])

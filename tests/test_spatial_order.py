@@ -391,3 +391,70 @@ def test_model_without_gap_table_has_same_probabilities_and_refuses_lookups():
     np.testing.assert_array_equal(match_probabilities(sp.x1, sp.x2), full.probabilities)
     with pytest.raises(ValueError, match="gap_table=False"):
         admissible_x_ranges(lite, sp.x1[:5])
+
+
+# ---------------------------------------------------------------- config semantics and validation
+
+
+def test_exact_probability_changes_only_the_reported_probabilities():
+    """config.probability is the model of the per-match probabilities; window, order noise and gap table are the
+    Gaussian model's whatever it says (no likely_correct mask: the order noise comes from the model's own P)."""
+    sp = generate_permutation(150, 100, n_swaps=20, seed=3)
+    g = fit_spatial_order(sp.x1, sp.x2)
+    e = fit_spatial_order(sp.x1, sp.x2, SpatialOrderConfig(probability="exact"))
+    assert g.usable and e.usable and g.omega == e.omega and g.order_noise == e.order_noise
+    for name in ("gap_lo", "gap_hi", "gap_count", "gap_runs_ptr", "gap_runs", "sigma_window"):
+        np.testing.assert_array_equal(getattr(g, name), getattr(e, name))
+    assert not np.array_equal(g.probabilities, e.probabilities)
+    hl, hr = inversions_per_match(e.sigma_window)
+    ref = probability_correct(np.arange(e.n_window), e.sigma_window, hl + hr, e.n_window - 1, e.n_good,
+                              e.n_window, method="exact")
+    np.testing.assert_array_equal(np.sort(e.probabilities[e.in_window]), np.sort(ref))
+
+
+@pytest.mark.parametrize("field,value", [
+    ("threshold", 0.0), ("threshold", 1.0), ("threshold", float("nan")), ("threshold", -0.1),
+    ("grid_fraction", 0.0), ("grid_fraction", 1.5), ("grid_fraction", float("inf")),
+    ("overlap", "k3d"), ("probability", "Exact"), ("num_beta", 0), ("num_beta", 2.5), ("num_beta", True),
+    ("refine", 1), ("trim_rounds", -1), ("var_floor", 0.0), ("var_floor", float("nan")), ("gap_table", "yes"),
+    ("order_noise", None), ("min_z", -1.0), ("min_z", float("inf")),
+])
+def test_config_rejects_bad_values_at_construction(field, value):
+    from guidedmatch.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=f"SpatialOrderConfig.{field} must be"):
+        SpatialOrderConfig(**{field: value})
+
+
+def test_config_from_dict_and_unknown_names():
+    from guidedmatch.errors import ConfigError
+
+    x = np.arange(20.0)
+    m = fit_spatial_order(x, x, {"overlap": "none", "threshold": 0.05})
+    assert m.usable and m.config == SpatialOrderConfig(overlap="none", threshold=0.05)
+    with pytest.raises(ConfigError, match="unknown SpatialOrderConfig option.*thresh.*valid: threshold"):
+        fit_spatial_order(x, x, {"thresh": 0.05})
+    assert SpatialOrderConfig(num_beta=np.int64(3)).num_beta == 3  # numpy integers are integers
+
+
+def test_numba_cache_is_used_by_a_second_process():
+    """cache=True survives the split into a subpackage: after one process has run a fit (compiling or loading),
+    a fresh process loads every dispatcher it calls from the on-disk cache and compiles nothing."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("from guidedmatch.spatial_order import fit_spatial_order, SpatialOrderConfig\n"
+            "from guidedmatch.testing.permutations import generate_permutation\n"
+            "sp = generate_permutation(200, 120, seed=0)\n"
+            "assert fit_spatial_order(sp.x1, sp.x2).usable\n"
+            "assert fit_spatial_order(sp.x1, sp.x2, SpatialOrderConfig(probability='exact')).usable\n")
+    env = {**os.environ, "NUMBA_DEBUG_CACHE": "1"}
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+            for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[-1].stderr[-2000:]
+    second = runs[1].stdout + runs[1].stderr
+    loaded = {line.split("_kernels.")[1].split("-")[0] for line in second.splitlines()
+              if "data loaded" in line and "spatial_order" in line and "_kernels." in line}
+    assert loaded == {"_inversions_dense", "_sweep_kendall", "_refine_window_nb", "_exact_lik_good", "_gap_kernel"}
+    assert "data saved" not in second and "index saved" not in second

@@ -1,8 +1,54 @@
-"""guidedmatch: guided image feature matching with feature spatial order (Teng & Dong) and epipolar geometry."""
+"""guidedmatch: guided image feature matching with feature spatial order (Teng & Dong) and epipolar geometry.
+
+One namespace for the public API (``import guidedmatch as gm``)::
+
+    f1, f2 = gm.detect("left.jpg"), gm.detect("right.jpg")      # Features (SIFT by default)
+    res = gm.match(f1, f2, "so+epi+ia", config={"band_px": 3})  # MatchResult: pairs (M,2), distances (M,), stats
+    res.stats.comparisons, res.stats.fallbacks                   # MatchStats: every field documented
+
+Names are loaded on first use (``import guidedmatch`` itself imports no NumPy, OpenCV or Numba); ``dir(gm)`` and
+``gm.__all__`` list them. Architecture and the paper sections behind each module: ``docs/architecture.md``.
+"""
 from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
 
-from .results import Failure, MatchResult
+#: public name -> module (relative to the package) that defines it
+_EXPORTS = {
+    # features and matching
+    "detect": "features", "Features": "features", "load_image": "features",
+    "match": "matcher", "GuidanceModels": "matcher",
+    "MatcherConfig": "config", "Mode": "config", "MODES": "config",
+    "MatchResult": "results", "MatchStats": "results", "ModelUpdate": "results", "Fallback": "results",
+    "PhaseTimes": "results", "CandidateStats": "results", "Failure": "results",
+    "match_bruteforce": "bruteforce",
+    # estimators
+    "estimate_fundamental": "epipolar",
+    "fit_spatial_order": "spatial_order", "SpatialOrderConfig": "spatial_order",
+    "align_from_fundamental": "alignment",
+    "two_view_geometry": "geometry", "TwoViewGeometry": "geometry", "VerdictConfig": "geometry",
+    # collections (COLMAP / hloc)
+    "open_source": "collection", "images_to_database": "collection", "exhaustive_pairs": "collection",
+    "sequential_pairs": "collection", "pairs_from_spec": "collection", "ColmapSink": "collection",
+    "H5MatchesSink": "collection",
+    # errors
+    "GuidedMatchError": "errors", "ConfigError": "errors", "InputError": "errors", "ImageReadError": "errors",
+    "OutputError": "errors", "DatabaseError": "errors", "DatabaseBusyError": "errors", "MemoryLimitError": "errors",
+}
 
-__all__ = ["Failure", "MatchResult", "__version__"]
+__all__ = sorted(_EXPORTS) + ["__version__"]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'guidedmatch' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value  # later lookups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .epipolar import check_points, epipoles, map_points, normalize_fundamental
+from .epipolar import check_points, epipoles, map_points, normalize_fundamental, skew
 from .results import Failure
 
 __all__ = [
@@ -111,10 +111,6 @@ def intrinsics(f: float, size: tuple[int, int]) -> np.ndarray:
     return np.array([[float(f), 0.0, (w - 1) / 2.0], [0.0, float(f), (h - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def bougnoux_focal_squared(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[float, float, float]:
     """Bougnoux's ``f1^2`` (Teng & Dong §III-E, Eq. for ``f1``):
 
@@ -128,7 +124,7 @@ def bougnoux_focal_squared(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tup
     """
     _, e2 = epipoles(F)
     It = np.diag([1.0, 1.0, 0.0])
-    A = p2 @ _skew(e2) @ It
+    A = p2 @ skew(e2) @ It
     num = float((A @ F @ p1) * (p1 @ F.T @ p2))
     den = float(A @ F @ It @ F.T @ p2)
     f2 = -num / den if den != 0 else float("nan")
@@ -304,7 +300,7 @@ def _rodrigues(axis: np.ndarray, angle: float) -> np.ndarray:
     n = np.linalg.norm(axis)
     if n == 0:
         return np.eye(3)
-    Kx = _skew(axis / n)
+    Kx = skew(axis / n)
     return np.eye(3) + np.sin(angle) * Kx + (1.0 - np.cos(angle)) * (Kx @ Kx)
 
 
@@ -359,7 +355,7 @@ def alignment_homographies(R: np.ndarray, K1: np.ndarray, K2: np.ndarray, approa
         if E is None:
             if t is None:
                 raise ValueError("approach 'd' needs E or t")
-            E = _skew(-R @ np.asarray(t, np.float64)) @ R
+            E = skew(-R @ np.asarray(t, np.float64)) @ R
         U, s, _ = np.linalg.svd(np.asarray(E, np.float64))
         sigma = s[1] / s[0]
         if t is not None and U[:, 2] @ (R @ np.asarray(t, np.float64)) < 0:
@@ -471,15 +467,30 @@ def align_from_fundamental(F, x1, x2, size1, size2, approach: str = "c", *, K1=N
 
 
 # -------------------------------------------------------------------------------------- applying
-def apply_homography(H: np.ndarray, pts) -> np.ndarray:
-    """Map ``(N, 2)`` pixel coordinates by ``H`` (homogeneous column vectors): ``(N, 2)``; rows are
-    ``NaN`` where the mapped ``w == 0`` (points on the line sent to infinity). Points with ``w < 0``
-    (behind the rotated camera) are mapped normally."""
+def apply_homography(H: np.ndarray, pts, *, in_front: bool = False) -> np.ndarray:
+    """Map ``(N, 2)`` pixel coordinates by ``H`` (homogeneous column vectors): ``(N, 2) float64``,
+    ``proj(H [x, y, 1]^T)``, computed element-wise (:func:`~guidedmatch.epipolar.map_points`).
+
+    Rows are ``NaN`` where the mapped ``w == 0`` (points on the line sent to infinity). With
+    ``in_front=False`` (alignment: the rectifying homographies of §III-E) points with ``w < 0`` (behind the
+    rotated camera) are mapped normally. ``in_front=True`` is the ground-truth projection of a planar scene
+    (:class:`guidedmatch.datasets.HomographyGT`): rows with ``w <= 0`` or a non-finite result are ``NaN`` (no
+    image point).
+
+    >>> H = np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 0.0], [0.0, 0.0, 1.0]])
+    >>> apply_homography(H, [[1.0, 2.0]])
+    array([[3., 4.]])
+    >>> apply_homography(-H, [[1.0, 2.0]]), apply_homography(-H, [[1.0, 2.0]], in_front=True)
+    (array([[3., 4.]]), array([[nan, nan]]))
+    """
     q = map_points(H, pts)
     w = q[:, 2:3]
     with np.errstate(divide="ignore", invalid="ignore"):
         out = q[:, :2] / w
-    out[(w[:, 0] == 0)] = np.nan
+    if in_front:
+        out[(w[:, 0] <= 0) | ~np.isfinite(out).all(axis=1)] = np.nan
+    else:
+        out[(w[:, 0] == 0)] = np.nan
     return out
 
 

@@ -1,31 +1,33 @@
 """Exact brute-force matching (the paper's BF baseline, Teng & Dong §IV).
 
 Every image-1 descriptor is compared with every image-2 descriptor: exactly ``N1 * N2`` distance
-evaluations, reported in ``stats["comparisons"]``.
+evaluations, reported in ``stats.comparisons``.
 
-* Float descriptors: L2 through blocked GEMM, ``||a||^2 + ||b||^2 - 2 a.b`` clamped at 0, in float32.
+* Float descriptors: the squared L2 distance through blocked GEMM, ``||a||^2 + ||b||^2 - 2 a.b`` clamped at 0, in
+  float32 (:func:`~guidedmatch.kernels.top2_gemm`), then the square root of the two nearest: :func:`knn2` and the
+  match result report L2 (Euclidean, **not** squared).
   Query rows are processed in blocks sized so the block's distance matrix stays under
   ``memory_budget_mb`` (default 256 MB; at 150k x 150k that is 447 query rows per block).
   With integer-valued descriptors (SIFT's are) every partial sum is an exact float32 integer below
   2^24, so distances and neighbours equal the exact ones; for arbitrary floats they agree to float32
   rounding.
-* Binary descriptors: Hamming distance by 64-bit popcount in a Numba kernel (no extra memory).
+* Binary descriptors: Hamming distance (bits, as float32) by 64-bit popcount in a Numba kernel (no extra memory).
 
-Ratio test (Lowe): a match ``(i, j1)`` is kept when ``d1 < ratio * d2`` (strict), where ``d2`` is the
-distance to the second-nearest neighbour; with a single image-2 descriptor ``d2 = inf`` and the test
-passes. Ties (``d1 == d2``) therefore fail the ratio test. Among equal distances the lowest image-2
-index is the nearest neighbour.
+Ratio test (Lowe), on these L2 (not squared) or Hamming distances: a match ``(i, j1)`` is kept when
+``d1 < ratio * d2`` (strict), where ``d2`` is the distance to the second-nearest neighbour; with a single
+image-2 descriptor ``d2 = inf`` and the test passes. Ties (``d1 == d2``) therefore fail the ratio test.
+Among equal distances the lowest image-2 index is the nearest neighbour.
 """
 from __future__ import annotations
 
-import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from . import kernels
-from .results import MatchResult, empty_pairs
+from .errors import InputError
+from .results import MatchResult, MatchStats, empty_pairs
 
 DEFAULT_MEMORY_BUDGET_MB = 256.0
 SERIAL_TOP2_ROWS = 256  # GEMM blocks with fewer query rows are reduced single-threaded (see kernels.top2_gemm_serial)
@@ -34,23 +36,23 @@ SERIAL_TOP2_ROWS = 256  # GEMM blocks with fewer query rows are reduced single-t
 def check_descriptors(d1: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """Validate two descriptor arrays; returns them contiguous plus ``binary`` (uint8 = Hamming).
 
-    Raises ``ValueError`` on dimension or dtype mismatch, wrong rank, or NaN/inf.
+    Raises :class:`~guidedmatch.errors.InputError` on dimension or dtype mismatch, wrong rank, or NaN/inf.
     """
     d1 = np.asarray(d1)
     d2 = np.asarray(d2)
     if d1.ndim != 2 or d2.ndim != 2:
-        raise ValueError(f"descriptors must be 2-D (N, D); got shapes {d1.shape} and {d2.shape}")
+        raise InputError(f"descriptors must be 2-D (N, D); got shapes {d1.shape} and {d2.shape}")
     if d1.shape[1] != d2.shape[1]:
-        raise ValueError(f"descriptor lengths differ: {d1.shape[1]} (image 1) vs {d2.shape[1]} (image 2)")
+        raise InputError(f"descriptor lengths differ: {d1.shape[1]} (image 1) vs {d2.shape[1]} (image 2)")
     b1, b2 = d1.dtype == np.uint8, d2.dtype == np.uint8
     if b1 != b2:
-        raise ValueError(f"descriptor types differ: {d1.dtype} (image 1) vs {d2.dtype} (image 2); "
+        raise InputError(f"descriptor types differ: {d1.dtype} (image 1) vs {d2.dtype} (image 2); "
                          "binary (uint8) and float descriptors cannot be matched with each other")
     if not b1:
         d1 = np.ascontiguousarray(d1, dtype=np.float32)
         d2 = np.ascontiguousarray(d2, dtype=np.float32)
         if not (np.all(np.isfinite(d1)) and np.all(np.isfinite(d2))):
-            raise ValueError("descriptors contain NaN/inf")
+            raise InputError("descriptors contain NaN/inf")
     return np.ascontiguousarray(d1), np.ascontiguousarray(d2), b1
 
 
@@ -64,7 +66,8 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     """Exact 2-NN of each ``d1`` row among ``d2`` rows.
 
     Returns ``(i1, dist1, i2, dist2)`` arrays of length N1 (index -1 / distance inf when missing) and,
-    when ``want_column_best``, ``(col_i, col_d)``: for each ``d2`` row its nearest ``d1`` row.
+    when ``want_column_best``, ``(col_i, col_d)``: for each ``d2`` row its nearest ``d1`` row. Distances are
+    ``float32`` L2 (square root taken, not squared) for float descriptors, Hamming bits for binary ones.
     ``d2_sqnorms`` (float descriptors: ``(N2,)`` squared norms of ``d2``) and ``checked=True`` (inputs already
     validated by :func:`check_descriptors`) let a caller that queries the same ``d2`` repeatedly skip that work.
     """
@@ -108,20 +111,26 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     return out, col
 
 
-@functools.lru_cache(maxsize=1)
-def _blas_controller():
-    """One ``threadpoolctl.ThreadpoolController`` per process (inspecting the loaded libraries takes ~2 ms).
+_CONTROLLER: list = [None, -1]  # [ThreadpoolController, len(sys.modules) when it was built]
 
-    SciPy's BLAS is loaded first (Numba's linear algebra and our geometry use it), so it is limited as well; a BLAS
-    loaded later by other code is not seen by this controller.
+
+def _blas_controller():
+    """A ``threadpoolctl.ThreadpoolController`` of the BLAS libraries loaded now (inspecting them takes ~2 ms).
+
+    Rebuilt only when modules were imported since the last call (a new extension module -- faiss, another SciPy
+    -- may bring its own BLAS, which a stale controller would leave multi-threaded). SciPy's BLAS is loaded first
+    (Numba's linear algebra and our geometry use it), so it is limited as well.
     """
     import importlib
-
-    from threadpoolctl import ThreadpoolController
+    import sys
 
     importlib.import_module("scipy.linalg")  # loads SciPy's OpenBLAS before the libraries are listed
+    if _CONTROLLER[0] is None or _CONTROLLER[1] != len(sys.modules):
+        from threadpoolctl import ThreadpoolController
 
-    return ThreadpoolController()
+        _CONTROLLER[0] = ThreadpoolController()
+        _CONTROLLER[1] = len(sys.modules)
+    return _CONTROLLER[0]
 
 
 class DenseKnn2:
@@ -222,12 +231,20 @@ def match_bruteforce(d1, d2, *, ratio: float | None = 0.8, mutual: bool = False,
         d2: ``(N2, D)`` image-2 descriptors of the same kind, or Features.
         ratio: Lowe ratio (keep when ``d1 < ratio * d2``); ``None`` disables it.
         mutual: also require image-1 feature to be the nearest neighbour of its match.
-        max_distance: drop matches farther than this (L2 units or Hamming bits).
+        max_distance: drop matches farther than this (L2, not squared, or Hamming bits).
         memory_budget_mb: bound on the temporary distance block for float descriptors.
 
     Returns:
-        :class:`MatchResult` with ``stats = {"comparisons": N1*N2, "time_s", "method": "bf", ...}``;
+        :class:`MatchResult`: ``stats`` a :class:`~guidedmatch.results.MatchStats` (``comparisons = N1*N2``,
+        ``time_s``, ``method = "bf"``; ``details``: ``ratio``, ``mutual``, ``max_distance``, ``block_rows``);
         ``pairs`` is ``(0, 2)`` when nothing matches.
+
+    >>> import numpy as np
+    >>> d1 = np.array([[0, 0], [10, 0], [5, 0]], np.float32)    # the 3rd is equally far from two image-2 rows:
+    >>> d2 = np.array([[0, 1], [10, 1], [5, 9]], np.float32)     # the ratio test drops it
+    >>> r = match_bruteforce(d1, d2)
+    >>> r.pairs.tolist(), r.distances.tolist(), r.stats.comparisons
+    ([[0, 0], [1, 1]], [1.0, 1.0], 9)
     """
     d1 = getattr(d1, "descriptors", d1)
     d2 = getattr(d2, "descriptors", d2)
@@ -235,10 +252,13 @@ def match_bruteforce(d1, d2, *, ratio: float | None = 0.8, mutual: bool = False,
     d1c, d2c, binary = check_descriptors(d1, d2)
     n1, n2 = len(d1c), len(d2c)
     (i1, s1, _i2, s2), col = knn2(d1c, d2c, memory_budget_mb=memory_budget_mb, want_column_best=mutual)
-    pairs, dist, _ = select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance,
-                                    mutual_best=col[0] if mutual else None)
+    pairs, dist, keep = select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance,
+                                       mutual_best=col[0] if mutual else None)
+    dropped_mutual = int(select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance)[2].sum() - keep.sum()) \
+        if mutual else 0
     dt = time.perf_counter() - t0
-    stats = dict(method="bf", comparisons=int(n1) * int(n2), time_s=dt, num_features=(n1, n2),
-                 metric="hamming" if binary else "l2", ratio=ratio, mutual=mutual, max_distance=max_distance,
-                 block_rows=None if binary else block_rows(n2, memory_budget_mb))
+    stats = MatchStats(method="bf", comparisons=int(n1) * int(n2), time_s=dt, num_features=(n1, n2),
+                       metric="hamming" if binary else "l2", dropped_by_mutual=dropped_mutual,
+                       details=dict(ratio=ratio, mutual=mutual, max_distance=max_distance,
+                                    block_rows=None if binary else block_rows(n2, memory_budget_mb)))
     return MatchResult(pairs, dist, stats)

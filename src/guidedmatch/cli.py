@@ -1,13 +1,14 @@
 """Command-line interface: ``guidedmatch match | demo | experiment | bench``.
 
-Every error the user can cause (missing or unreadable image, no features, bad option, mismatched
-descriptors, ...) prints one line ``guidedmatch: error: ...`` on stderr and exits with status 2 --
-never a traceback (``--debug`` shows one). Output files are written atomically.
+Every error the user can cause is a :class:`~guidedmatch.errors.GuidedMatchError` (missing or unreadable image,
+no features, bad option or config value, mismatched descriptors, ...): it prints one line ``guidedmatch: error:
+...`` on stderr and exits with status 2, checked before any detection where possible. Any other exception is a
+bug: one line ``guidedmatch: internal error: ...``, exit status 1. ``--debug`` shows the traceback of either.
+Output files are written atomically.
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -16,12 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .config import MODES, MatcherConfig
+from .errors import ConfigError, GuidedMatchError, InputError, OutputError
+from .features import writable_folder
 
-MODES = ("bf", "epi", "so", "so+epi", "so+epi+ia")
-
-
-class CLIError(Exception):
-    """An error reported to the user as one line, exit status 2."""
+OUTPUT_FORMATS = (".npz", ".csv", ".json")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -30,7 +30,7 @@ def _parse_kv(items: list[str] | None, what: str) -> dict:
     out = {}
     for item in items or []:
         if "=" not in item:
-            raise CLIError(f"{what} must look like key=value, got {item!r}")
+            raise ConfigError(f"{what} must look like key=value, got {item!r}")
         k, v = item.split("=", 1)
         try:
             out[k.strip()] = json.loads(v)
@@ -46,28 +46,37 @@ def to_json(obj, **kw) -> str:
     return json.dumps(obj, default=json_default, **kw)
 
 
-def write_matches(path: Path, result, f1, f2) -> None:
-    """Write matches as ``.npz`` / ``.csv`` / ``.json`` (by suffix), atomically."""
+def write_matches(path: Path, result, f1, f2, geometry=None, verified=None) -> None:
+    """Write matches as ``.npz`` / ``.csv`` / ``.json`` (by suffix), atomically.
+
+    ``geometry``: the pair's :class:`~guidedmatch.geometry.TwoViewGeometry` (stored as ``stats["geometry"]``);
+    ``verified``: optional ``(M,) bool`` per match (``--keep-unverified``: a ``verified`` array / column).
+    """
     from .features import atomic_savez, atomic_write_text
 
     pairs, dist = result.pairs, result.distances
     p1 = f1.keypoints[pairs[:, 0]] if len(pairs) else np.zeros((0, 2))
     p2 = f2.keypoints[pairs[:, 1]] if len(pairs) else np.zeros((0, 2))
     suffix = path.suffix.lower()
-    stats_json = to_json(result.stats)
+    stats = result.stats.to_dict()
+    if geometry is not None:
+        stats["geometry"] = geometry.to_dict()
+    stats_json = to_json(stats)
+    extra = {} if verified is None else {"verified": np.asarray(verified, bool)}
     if suffix == ".npz":
         atomic_savez(path, pairs=pairs, distances=dist, points1=p1, points2=p2,
-                     keypoints1=f1.keypoints, keypoints2=f2.keypoints, stats=np.array(stats_json))
+                     keypoints1=f1.keypoints, keypoints2=f2.keypoints, stats=np.array(stats_json), **extra)
     elif suffix == ".csv":
-        lines = ["i1,i2,x1,y1,x2,y2,distance"]
-        lines += [f"{a},{b},{x1:.3f},{y1:.3f},{x2:.3f},{y2:.3f},{d:.4f}"
-                  for (a, b), (x1, y1), (x2, y2), d in zip(pairs, p1, p2, dist)]
+        v = extra.get("verified")
+        lines = ["i1,i2,x1,y1,x2,y2,distance" + (",verified" if v is not None else "")]
+        lines += [f"{a},{b},{x1:.3f},{y1:.3f},{x2:.3f},{y2:.3f},{d:.4f}" + ("" if v is None else f",{int(v[k])}")
+                  for k, ((a, b), (x1, y1), (x2, y2), d) in enumerate(zip(pairs, p1, p2, dist))]
         atomic_write_text(path, "\n".join(lines) + "\n")
     elif suffix == ".json":
         atomic_write_text(path, to_json(dict(pairs=pairs, distances=dist, points1=p1, points2=p2,
-                                             stats=result.stats), indent=1))
+                                             stats=stats, **extra), indent=1))
     else:
-        raise CLIError(f"unknown output format {suffix!r}: use .npz, .csv or .json")
+        raise OutputError(f"unknown output format {suffix!r}: use .npz, .csv or .json")
 
 
 def read_matches(path) -> dict:
@@ -78,83 +87,163 @@ def read_matches(path) -> dict:
     return d
 
 
-def run_mode(f1, f2, mode: str, config_overrides: dict | None = None, return_models: bool = False):
-    """Match two feature sets with ``mode`` (``--config`` keys are :class:`MatcherConfig` fields)."""
-    config_overrides = dict(config_overrides or {})
-    if mode not in MODES:
-        raise CLIError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
+def matcher_config(items: list[str] | None) -> MatcherConfig:
+    """``--config KEY=VALUE`` items -> a validated :class:`MatcherConfig` (ConfigError naming the valid keys)."""
+    from .validation import config_from
+
     try:
-        from . import matcher
-    except ImportError:
-        matcher = None
-    if matcher is None:
-        if mode != "bf":
-            raise CLIError(f"mode {mode!r} is not available in this build; only 'bf' is")
-        from .bruteforce import match_bruteforce
-
-        allowed = {"ratio", "mutual", "max_distance"}
-        bad = set(config_overrides) - allowed
-        if bad:
-            raise CLIError(f"unknown config key(s) for bf: {', '.join(sorted(bad))}")
-        res = match_bruteforce(f1, f2, **config_overrides)
-        return (res, None) if return_models else res
-    try:
-        config = matcher.MatcherConfig(**config_overrides)
-    except TypeError as exc:
-        names = ", ".join(f.name for f in dataclasses.fields(matcher.MatcherConfig))
-        raise CLIError(f"bad --config: {exc}. Known keys: {names}") from None
-    return matcher.match(f1, f2, mode=mode, config=config, return_models=return_models)
+        return config_from(MatcherConfig, _parse_kv(items, "--config"))
+    except ConfigError as exc:
+        raise ConfigError(f"bad --config: {exc}") from None
 
 
-def _detect_both(img1, img2, detector, max_features, options):
-    from .features import detect
+def _detect_both(img1, img2, detector, max_features, options, max_image_size=None, names=("IMG1", "IMG2")):
+    from .features import check_detect_memory, detect
 
-    f1 = detect(img1, detector, max_features, **options)
-    f2 = detect(img2, detector, max_features, **options)
-    for name, f in (("IMG1", f1), ("IMG2", f2)):
+    feats = []
+    for img, name in zip((img1, img2), names):
+        h, w = img.shape[:2]
+        if max_image_size and max(w, h) > max_image_size:
+            s = max_image_size / max(w, h)
+            w, h = max(1, round(w * s)), max(1, round(h * s))
+        check_detect_memory(w, h, detector, name)  # MemoryLimitError with a suggested --max-image-size
+        feats.append(detect(img, detector, max_features, max_image_size=max_image_size, **options))
+    for name, f in zip(names, feats):
         if len(f) == 0:
-            raise CLIError(f"no features detected in {name} ({detector}); the image may be blank or too small")
-    return f1, f2
+            raise InputError(f"no features detected in {name} ({detector}); the image may be blank or too small")
+    return feats[0], feats[1]
+
+
+def _check_input_image(path: str, what: str) -> None:
+    from .errors import ImageReadError
+    from .features import ImageNotFoundError
+
+    p = Path(path)
+    if not p.exists():
+        raise ImageNotFoundError(f"{what} not found: {p}")
+    if p.is_dir():
+        raise ImageReadError(f"{what} is a folder, not an image: {p}")
+
+
+def fallback_lines(fallbacks) -> list[str]:
+    """Each distinct fallback once, with how often it occurred: ``"what: reason (x3)"``."""
+    counts: dict[tuple, int] = {}
+    for fb in fallbacks or ():
+        key = (fb.what, fb.reason) if hasattr(fb, "what") else (fb.get("what"), fb.get("reason"))
+        counts[key] = counts.get(key, 0) + 1
+    return [f"{w}: {r}" + (f" (x{n})" if n > 1 else "") for (w, r), n in counts.items()]
+
+
+def pair_geometry(result, f1, f2):
+    """The two-view verdict of a match result: ``result.geometry`` when the matcher provides it, else
+    :func:`~guidedmatch.geometry.two_view_geometry` decided on the matches made before any model was fitted
+    (``flags["phase"] == 0``: unguided nearest neighbours, so the test is not biased by the guidance) and reported
+    over all matches."""
+    geo = getattr(result, "geometry", None)
+    if geo is not None:
+        return geo
+    from .geometry import two_view_geometry
+
+    p = result.pairs
+    x1, x2 = f1.keypoints[p[:, 0]], f2.keypoints[p[:, 1]]
+    phase = result.flags.get("phase")
+    ev = np.ones(len(p), bool) if phase is None else np.asarray(phase) == 0
+    return two_view_geometry(x1[ev], x2[ev], f1.image_size, f2.image_size, report_on=(x1, x2))
+
+
+def _subset_result(result, keep: np.ndarray):
+    import dataclasses
+
+    return dataclasses.replace(result, pairs=result.pairs[keep], distances=result.distances[keep],
+                               flags={k: np.asarray(v)[keep] for k, v in result.flags.items()})
+
+
+def timed_match(f1, f2, mode, config=None, *, return_models=False):
+    """``match`` with its Numba kernels warmed up first (untimed); returns ``(match's return value,
+    matching_seconds, compile_seconds)`` -- ``match`` itself reports any compilation left in the timed run apart
+    from ``stats.time_s`` (``stats.details["jit_compile_s"]``)."""
+    from .jit import warm_up
+    from .matcher import match
+
+    compile_s = warm_up(f1, f2, mode, config)
+    out = match(f1, f2, mode, config, return_models=return_models)
+    st = (out[0] if return_models else out).stats
+    return out, st.time_s, compile_s + st.details.get("jit_compile_s", 0.0)
 
 
 # --------------------------------------------------------------------------- commands
 def cmd_match(args) -> int:
-    from .features import load_image
+    from .features import check_detector_options, check_output_path, load_image
 
+    # every argument and path problem is found here, before any image is read
+    config = matcher_config(args.config)
+    detector_options = check_detector_options(args.detector, _parse_kv(args.detector_option, "--detector-option"))
     if args.show_regions and not args.plot:
-        raise CLIError("--show-regions needs --plot OUT.png")
+        raise ConfigError("--show-regions needs --plot OUT.png")
     if args.show_regions and args.mode == "bf":
-        raise CLIError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
-    if args.output and Path(args.output).suffix.lower() not in (".npz", ".csv", ".json"):
-        raise CLIError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
+        raise ConfigError("--show-regions needs a guided mode (epi, so, so+epi, so+epi+ia), not bf")
+    if args.output and Path(args.output).suffix.lower() not in OUTPUT_FORMATS:
+        raise OutputError(f"unknown output format {Path(args.output).suffix!r}: use .npz, .csv or .json")
+    if args.keep_unverified and not args.output:
+        raise ConfigError("--keep-unverified needs -o OUT")
+    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf", ".svg", ".jpg"):
+        raise OutputError(f"unknown plot format {Path(args.plot).suffix!r}: use .png, .pdf, .svg or .jpg")
+    _check_input_image(args.img1, "IMG1")
+    _check_input_image(args.img2, "IMG2")
+    if args.output:
+        check_output_path(args.output, "-o/--output")
+    if args.plot:
+        check_output_path(args.plot, "--plot")
 
-    img1 = load_image(args.img1)
-    img2 = load_image(args.img2)
-    t0 = time.perf_counter()
-    f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, _parse_kv(args.detector_option, "--detector-option"))
-    t_det = time.perf_counter() - t0
-    result, models = run_mode(f1, f2, args.mode, _parse_kv(args.config, "--config"), return_models=True)
+    from .jit import background_compile
+
+    with background_compile(args.detector, (args.mode,)) as bg:  # first run: kernels compile on both cores meanwhile
+        img1 = load_image(args.img1)
+        img2 = load_image(args.img2)
+        t0 = time.perf_counter()
+        f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, detector_options, args.max_image_size,
+                              (args.img1, args.img2))
+        t_det = time.perf_counter() - t0
+        waited = bg.wait()
+    (result, models), time_s, compile_s = timed_match(f1, f2, args.mode, config, return_models=True)
+    compile_s += waited
     st = result.stats
-    print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s)")
+    geo = pair_geometry(result, f1, f2)
+    scaled = ""
+    if args.max_image_size and max(max(f.image_size) for f in (f1, f2)) > args.max_image_size:
+        scaled = f", detected at long side <= {args.max_image_size} px, coordinates in original pixels"
+    print(f"features      : {len(f1)} x {len(f2)} ({args.detector}, detection {t_det:.2f} s{scaled})")
     print(f"mode          : {args.mode}")
     print(f"matches       : {len(result)}")
-    print(f"comparisons   : {st['comparisons']:,} ({100.0 * st['comparisons'] / max(1, len(f1) * len(f2)):.2f} % of brute force)")
-    print(f"matching time : {st['time_s']:.3f} s")
-    for fb in st.get("fallbacks", []):
-        print(f"fallback      : {fb.get('what')}: {fb.get('reason')}")
+    if geo:
+        print(f"verdict       : verified ({geo.model}): {geo.num_inliers} of {len(result)} matches geometrically verified")
+    else:
+        label = "no overlap" if geo.verdict == "no-overlap" else "too few matches"
+        print(f"verdict       : {label}: 0 geometrically verified matches ({geo.reason})")
+    print(f"comparisons   : {st.comparisons:,} ({100.0 * st.comparison_ratio:.2f} % of brute force)")
+    jit_note = f" (Numba compilation excluded: {compile_s:.1f} s, first run only)" if compile_s else ""
+    print(f"matching time : {time_s:.3f} s{jit_note}")
+    for line in fallback_lines(st.fallbacks):
+        print(f"fallback      : {line}")
+    inl = np.asarray(geo.inliers, bool) if len(geo.inliers) == len(result) else np.zeros(len(result), bool)
     if args.output:
-        write_matches(Path(args.output), result, f1, f2)
-        print(f"wrote         : {args.output}")
+        out = result if args.keep_unverified else _subset_result(result, inl)
+        write_matches(Path(args.output), out, f1, f2, geometry=geo, verified=inl if args.keep_unverified else None)
+        what = f"{len(out)} matches, {int(inl.sum())} verified" if args.keep_unverified else \
+            f"{len(out)} verified matches" + ("" if geo else "; --keep-unverified writes the unverified ones")
+        print(f"wrote         : {args.output} ({what})")
     if args.plot:
         from . import plots
 
         if args.show_regions:
             if models is None:
-                raise CLIError("--show-regions needs a guided mode whose models were fitted (see the fallbacks above)")
+                raise InputError("--show-regions needs a guided mode whose models were fitted (see the fallbacks above)")
             plots.search_regions(args.plot, img1, img2, f1, f2, result, models)
         else:
-            plots.motion_field(args.plot, img1, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
-                               None, f"{args.mode}: {len(result)} matches")
+            verdict = (f"{geo.num_inliers} verified ({geo.model})" if geo else
+                       ("no overlap" if geo.verdict == "no-overlap" else "too few matches") + ": 0 verified")
+            plots.match_pair(args.plot, img1, img2, f1.keypoints[result.pairs[:, 0]], f2.keypoints[result.pairs[:, 1]],
+                             inl, f"{args.mode}: {len(result)} matches, {verdict}")
         print(f"wrote         : {args.plot}")
     return 0
 
@@ -162,39 +251,50 @@ def cmd_match(args) -> int:
 def cmd_demo(args) -> int:
     from . import plots
     from .features import detect
+    from .features import check_output_path
     from .testing.scenes import make_scene
 
     out = Path(args.out)
+    for name in ("demo_matches.png", "demo_results.json"):
+        check_output_path(out / name, "--out")
     w, h = args.size
-    print(f"[1/4] rendering a synthetic two-view scene {w}x{h}, camera roll {args.roll:g} deg (seed {args.seed})")
-    scene = make_scene((w, h), roll_deg=args.roll, seed=args.seed)
-    print(f"[2/4] detecting {args.detector.upper()} features")
-    f1 = detect(scene.image1, args.detector, args.max_features)
-    f2 = detect(scene.image2, args.detector, args.max_features)
-    print(f"      {len(f1)} x {len(f2)} features")
-    modes = MODES if _has_matcher() else ("bf",)
-    print(f"[3/4] matching with {', '.join(modes)}")
+    from .jit import background_compile
+
+    with background_compile(args.detector, MODES) as bg:  # first run: kernels compile on both cores meanwhile
+        print(f"[1/4] rendering a synthetic two-view scene {w}x{h}, camera roll {args.roll:g} deg (seed {args.seed})")
+        scene = make_scene((w, h), roll_deg=args.roll, seed=args.seed)
+        print(f"[2/4] detecting {args.detector.upper()} features")
+        f1 = detect(scene.image1, args.detector, args.max_features)
+        f2 = detect(scene.image2, args.detector, args.max_features)
+        print(f"      {len(f1)} x {len(f2)} features")
+        waited = bg.wait()
+    print(f"[3/4] matching with {', '.join(MODES)}")
     rows, panels = [], []
     bf_comp = max(1, len(f1) * len(f2))
-    for mode in modes:
-        res = run_mode(f1, f2, mode)
+    compile_s = waited
+    for mode in MODES:
+        res, time_s, c_s = timed_match(f1, f2, mode)  # kernels warmed up first: no compilation in the times
+        compile_s += c_s
         p1, p2 = f1.keypoints[res.pairs[:, 0]], f2.keypoints[res.pairs[:, 1]]
         ok = scene.correct(p1, p2)
-        rows.append(dict(mode=mode, comparisons=res.stats["comparisons"], matches=len(res), true=int(ok.sum()),
-                         precision=float(ok.mean()) if len(ok) else float("nan"), time_s=res.stats["time_s"],
-                         fallbacks=len(res.stats.get("fallbacks", []))))
+        rows.append(dict(mode=mode, comparisons=res.stats.comparisons, matches=len(res), true=int(ok.sum()),
+                         precision=float(ok.mean()) if len(ok) else float("nan"), time_s=time_s,
+                         fallbacks=len(res.stats.fallbacks)))
         panels.append(dict(pts1=p1, pts2=p2, correct=ok,
-                           title=f"{mode}: {int(ok.sum())}/{len(res)} correct, {100 * res.stats['comparisons'] / bf_comp:.2f} % comparisons"))
+                           title=f"{mode}: {int(ok.sum())}/{len(res)} correct, {100 * res.stats.comparisons / bf_comp:.2f} % comparisons"))
     print()
     print(format_table(rows, bf_comp))
     print()
     print("true = GT within 3 px (exact scene geometry); comparisons = descriptor distances evaluated")
+    if compile_s:
+        print(f"Numba compilation (first run only, not in the times above): {compile_s:.1f} s")
     fig = plots.motion_field_panels(out / "demo_matches.png", scene.image1, panels,
                                     suptitle=f"guidedmatch demo: motion field on image 1 (green = correct, red = wrong), roll {args.roll:g} deg")
     from .features import atomic_write_text
 
     atomic_write_text(out / "demo_results.json", to_json(dict(rows=rows, features=(len(f1), len(f2)),
-                                                              size=(w, h), roll_deg=args.roll, seed=args.seed), indent=1))
+                                                              size=(w, h), roll_deg=args.roll, seed=args.seed,
+                                                              jit_compile_s=compile_s), indent=1))
     print(f"[4/4] wrote {fig} and {out / 'demo_results.json'}")
     return 0
 
@@ -208,26 +308,17 @@ def format_table(rows: list[dict], bf_comp: int) -> str:
     return "\n".join(lines)
 
 
-def _has_matcher() -> bool:
-    try:
-        from . import matcher  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def cmd_experiment(args) -> int:
     if args.which == "alignment":
-        try:
-            from .evaluation.alignment_sim import run_alignment_experiment
-        except ImportError as exc:
-            raise CLIError(f"the alignment experiment is not available: {exc}") from None
-        summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=Path(args.out), seed=args.seed, progress=True)
+        from .evaluation.alignment_sim import run_alignment_experiment
+
+        summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=writable_folder(args.out), seed=args.seed,
+                                           progress=True)
         if isinstance(summary, dict) and summary.get("table_md"):
             print(summary["table_md"])
         print(f"wrote results to {args.out}")
         return 0
-    raise CLIError(f"unknown experiment {args.which!r}")
+    raise ConfigError(f"unknown experiment {args.which!r}")
 
 
 def cmd_bench(args) -> int:
@@ -235,11 +326,11 @@ def cmd_bench(args) -> int:
         from .evaluation import bench_pairs
 
         return int(bench_pairs.main(args) or 0)
-    try:
-        from .evaluation import bench
-    except ImportError as exc:
-        raise CLIError(f"the benchmark harness is not available: {exc}") from None
-    return int(bench.main(args) or 0)
+    from .evaluation.bench import run_benchmarks
+
+    run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
+                   detector=args.detector, seed=args.seed)
+    return 0
 
 
 # --------------------------------------------------------------------------- parser
@@ -264,6 +355,9 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .evaluation.bench import BENCHMARKS
+    from .features import DETECTORS
+
     p = argparse.ArgumentParser(prog="guidedmatch", description="Guided image feature matching with feature spatial "
                                 "order and epipolar geometry (Teng & Dong).")
     p.add_argument("--version", action="version", version=f"guidedmatch {__version__}")
@@ -275,12 +369,17 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("img1")
     m.add_argument("img2")
     m.add_argument("--mode", default="so+epi+ia", choices=MODES, help="matching mode (default: so+epi+ia)")
-    m.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze", "brisk"), help="feature detector (default sift)")
+    m.add_argument("--detector", default="sift", choices=DETECTORS, help="feature detector (default sift)")
     m.add_argument("--max-features", type=_positive_int, default=None, help="keep at most N strongest features per image")
     m.add_argument("--detector-option", action="append", metavar="KEY=VALUE", help="OpenCV detector option, e.g. contrastThreshold=0.01 (repeatable)")
     m.add_argument("--config", action="append", metavar="KEY=VALUE", help="matcher config override, e.g. ratio=0.9 (repeatable)")
-    m.add_argument("-o", "--output", help="write matches to .npz, .csv or .json")
-    m.add_argument("--plot", help="write a motion-field PNG")
+    m.add_argument("--max-image-size", type=_positive_int, default=None, metavar="PX",
+                   help="detect on a copy downscaled to this long side (keypoints still in original pixels); "
+                        "needed for very large images (the memory check suggests a size)")
+    m.add_argument("-o", "--output", help="write the geometrically verified matches to .npz, .csv or .json")
+    m.add_argument("--keep-unverified", action="store_true",
+                   help="with -o: write every match, with a 'verified' flag, also when the images do not overlap")
+    m.add_argument("--plot", help="write a PNG of both images with the matches (inliers / outliers of the verdict)")
     m.add_argument("--show-regions", action="store_true", help="with --plot: draw the search regions of a few features instead")
     m.set_defaults(func=cmd_match)
 
@@ -291,7 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--size", type=_size, default=(1600, 1200), help="image size WxH (default 1600x1200)")
     d.add_argument("--roll", type=float, default=30.0, help="camera-2 roll in degrees (default 30)")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze", "brisk"))
+    d.add_argument("--detector", default="sift", choices=DETECTORS)
     d.add_argument("--max-features", type=_positive_int, default=None)
     d.set_defaults(func=cmd_demo)
 
@@ -304,12 +403,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="reproduce the paper's tables side by side with the paper and peers",
                        description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
-    b.add_argument("which", choices=("oxford", "synthetic", "real", "alignment", "all", "pairs"))
+    b.add_argument("which", choices=BENCHMARKS + ("pairs",))
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
     b.add_argument("--repeats", type=_positive_int, default=None, help="timing repeats per method (median)")
-    b.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze", "brisk"))
+    b.add_argument("--detector", default="sift", choices=DETECTORS)
     b.add_argument("--seed", type=int, default=0)
     from .evaluation.bench_pairs import add_arguments as _pairs_arguments
 
@@ -326,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (CLIError, ValueError, FileNotFoundError, IsADirectoryError, PermissionError, ImportError) as exc:
+    except GuidedMatchError as exc:  # the user's input or configuration: one line, exit 2
         if args.debug:
             raise
         print(f"guidedmatch: error: {exc}", file=sys.stderr)
@@ -334,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("guidedmatch: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:  # pragma: no cover - last resort, still no traceback without --debug
+    except Exception as exc:  # a bug: one line, exit 1 (--debug: the traceback)
         if args.debug:
             raise
         print(f"guidedmatch: internal error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)", file=sys.stderr)

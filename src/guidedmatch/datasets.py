@@ -30,6 +30,11 @@ from typing import Any
 
 import numpy as np
 
+from .errors import DataNotFoundError
+from .alignment import apply_homography
+from .epipolar import skew, symmetric_epipolar_distance
+from .features import load_image
+
 ENV_VAR = "GUIDEDMATCH_DATA"
 #: The paper's correctness threshold (Sec. IV-A): a match is correct if its GT error is below 3 px.
 DEFAULT_THRESHOLD = 3.0
@@ -75,7 +80,7 @@ def data_root(override: str | os.PathLike | None = None) -> Path | None:
 def _require_root(root: str | os.PathLike | None) -> Path:
     r = data_root(root)
     if r is None:
-        raise FileNotFoundError(
+        raise DataNotFoundError(
             "evaluation data folder not found (looked for ../shared/data relative to the current directory "
             f"and to the repository root); set the environment variable {ENV_VAR} to the data folder "
             "or pass root=..."
@@ -83,8 +88,8 @@ def _require_root(root: str | os.PathLike | None) -> Path:
     return r
 
 
-def _missing(path: Path, what: str) -> FileNotFoundError:
-    return FileNotFoundError(
+def _missing(path: Path, what: str) -> DataNotFoundError:
+    return DataNotFoundError(
         f"{what} not found: {path} -- is the data root right? Set {ENV_VAR} to the folder holding "
         "oxford/, pose_pairs/ and photos/ (see ../shared/data/SOURCES.md), or pass root=..."
     )
@@ -117,18 +122,6 @@ def _inside(pts: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
         return (pts[:, 0] >= -0.5) & (pts[:, 0] <= w - 0.5) & (pts[:, 1] >= -0.5) & (pts[:, 1] <= h - 0.5)
 
 
-def project_homography(H: np.ndarray, pts: Any) -> np.ndarray:
-    """``proj(H [x, y, 1]^T)`` for ``(N, 2)`` points -> ``(N, 2) float64``; points mapped to infinity
-    (``w == 0``) or behind the camera-like plane (``w < 0``) come out as NaN."""
-    p = _as_points(pts)
-    hom = p @ H[:, :2].T + H[:, 2]
-    w = hom[:, 2:3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = hom[:, :2] / w
-    out[(w[:, 0] <= 0) | ~np.isfinite(out).all(axis=1)] = np.nan
-    return out
-
-
 @dataclass(frozen=True, eq=False)
 class HomographyGT:
     """Planar ground truth (Oxford, synthetic): image-1 pixel ``p1`` corresponds to ``proj(H p1)``.
@@ -151,8 +144,9 @@ class HomographyGT:
         object.__setattr__(self, "H", H)
 
     def project(self, pts1: Any) -> np.ndarray:
-        """Image-2 positions ``(N, 2)`` of image-1 points ``(N, 2)`` (NaN where undefined)."""
-        return project_homography(self.H, pts1)
+        """Image-2 positions ``(N, 2)`` of image-1 points ``(N, 2)``: ``proj(H p1)``, NaN where undefined
+        (mapped ``w <= 0``: :func:`~guidedmatch.alignment.apply_homography` with ``in_front=True``)."""
+        return apply_homography(self.H, _as_points(pts1), in_front=True)
 
     def error(self, pts1: Any, pts2: Any) -> np.ndarray:
         """Transfer error ``||proj(H p1) - p2||`` in image-2 pixels, ``(M,) float64`` (inf where undefined)."""
@@ -175,42 +169,6 @@ class HomographyGT:
         return HomographyGT(S2 @ self.H @ np.linalg.inv(S1), sz(self.size1, scale1), sz(self.size2, scale2))
 
 
-def skew(t: Any) -> np.ndarray:
-    """``[t]_x``, the ``(3, 3)`` cross-product matrix of a 3-vector."""
-    x, y, z = np.asarray(t, dtype=np.float64).reshape(3)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def epipolar_distances(F: np.ndarray, pts1: Any, pts2: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Point-to-epipolar-line distances in pixels for ``x2^T F x1 = 0``.
-
-    Returns ``(d2, d1)``: ``d2`` = distance of ``p2`` to the line ``F x1`` in image 2, ``d1`` = distance
-    of ``p1`` to ``F^T x2`` in image 1; both ``(M,) float64`` (inf for degenerate lines).
-    """
-    p1, p2 = _as_points(pts1), _as_points(pts2)
-    x1 = np.c_[p1, np.ones(len(p1))]
-    x2 = np.c_[p2, np.ones(len(p2))]
-    l2 = x1 @ F.T  # lines in image 2
-    l1 = x2 @ F  # lines in image 1
-    alg = np.abs(np.sum(x2 * l2, axis=1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = alg / np.hypot(l2[:, 0], l2[:, 1])
-        d1 = alg / np.hypot(l1[:, 0], l1[:, 1])
-    d2[~np.isfinite(d2)] = np.inf
-    d1[~np.isfinite(d1)] = np.inf
-    return d2, d1
-
-
-def symmetric_epipolar_distance(F: np.ndarray, pts1: Any, pts2: Any) -> np.ndarray:
-    """Symmetric point-to-epipolar-line distance, ``(d(p2, F x1) + d(p1, F^T x2)) / 2`` in pixels, ``(M,)``.
-
-    The mean of the two one-sided distances (not SuperGlue's squared-normalised "symmetric epipolar
-    distance"), so the threshold reads as pixels like the homography transfer error.
-    """
-    d2, d1 = epipolar_distances(F, pts1, pts2)
-    return 0.5 * (d1 + d2)
-
-
 @dataclass(frozen=True, eq=False)
 class EpipolarGT:
     """Two-view ground truth from calibrated poses (Strecha pairs).
@@ -218,8 +176,9 @@ class EpipolarGT:
     Convention (SuperGlue ``pairs_with_gt``): ``X_cam2 = R X_cam1 + t``; essential matrix ``E = [t]_x R``
     with ``x2^T E x1 = 0`` for normalised coordinates; fundamental ``F = K2^-T [t]_x R K1^-1`` with
     ``[u2 v2 1] F [u1 v1 1]^T = 0`` for pixels. A match is correct iff the symmetric point-to-epipolar-line
-    distance (:func:`symmetric_epipolar_distance`) is below ``threshold`` (3 px). Only the epipolar
-    constraint is checked: a wrong match sliding along its epipolar line counts as correct.
+    distance (:func:`guidedmatch.epipolar.symmetric_epipolar_distance`, the mean of the two point-to-line
+    distances in pixels) is below ``threshold`` (3 px). Only the epipolar constraint is checked: a wrong match
+    sliding along its epipolar line counts as correct.
 
     Attributes:
         F: ``(3, 3)`` fundamental matrix (image 1 -> image 2), scaled to unit Frobenius norm.
@@ -255,8 +214,12 @@ class EpipolarGT:
         return cls(F, K1, K2, R, t, size1, size2)
 
     def error(self, pts1: Any, pts2: Any) -> np.ndarray:
-        """Symmetric point-to-epipolar-line distance in pixels, ``(M,) float64``."""
-        return symmetric_epipolar_distance(self.F, pts1, pts2)
+        """Symmetric point-to-epipolar-line distance in pixels, ``(M,) float64``; ``inf`` where a line is
+        undefined (a point at an epipole, or non-finite input), where the epipolar module gives NaN: a GT error
+        is "infinitely wrong", never missing (``error < threshold`` is False either way)."""
+        d = symmetric_epipolar_distance(self.F, _as_points(pts1), _as_points(pts2))
+        d[np.isnan(d)] = np.inf
+        return d
 
     def correct(self, pts1: Any, pts2: Any, threshold: float = DEFAULT_THRESHOLD) -> np.ndarray:
         """``(M,) bool``: symmetric epipolar distance < ``threshold`` (and both points inside their images)."""
@@ -284,24 +247,10 @@ GroundTruth = HomographyGT | EpipolarGT
 
 
 def _read_image(path: Path, grey: bool) -> np.ndarray:
-    import cv2
-
+    """:func:`guidedmatch.features.load_image` of a data file (FileNotFoundError with the data-root hint)."""
     if not Path(path).is_file():
         raise _missing(Path(path), "image")
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
-    if img is None:
-        raise OSError(f"could not decode image {path}")
-    return img
-
-
-def _to_grey(img: np.ndarray) -> np.ndarray:
-    import cv2
-
-    if img.ndim == 2:
-        return img
-    if img.shape[2] == 1:
-        return img[:, :, 0]
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    return load_image(Path(path), grey=grey)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -344,13 +293,7 @@ class Pair:
     @staticmethod
     def _load_one(src: Path | np.ndarray, grey: bool) -> np.ndarray:
         if isinstance(src, np.ndarray):
-            if grey:
-                return _to_grey(src)
-            if src.ndim == 2:
-                import cv2
-
-                return cv2.cvtColor(src, cv2.COLOR_GRAY2BGR)
-            return src
+            return load_image(src, grey=grey)
         return _read_image(Path(src), grey)
 
     @property
@@ -642,7 +585,7 @@ def synthetic_homography(
     T_mc = np.array([[1.0, 0, -cx], [0, 1, -cy], [0, 0, 1]])
     A = T_c @ np.array([[s * c, -s * sn, 0], [s * sn, s * c, 0], [0, 0, 1]]) @ T_mc
     M = A @ P
-    warped = project_homography(M, _corners(w, h))
+    warped = apply_homography(M, _corners(w, h), in_front=True)
     lo = warped.min(axis=0)
     hi = warped.max(axis=0)
     tx = ty = 0.0

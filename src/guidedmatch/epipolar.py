@@ -39,6 +39,8 @@ __all__ = [
     "in_band",
     "transform_fundamental",
     "check_points",
+    "map_points",
+    "skew",
 ]
 
 #: Minimum number of correspondences accepted by :func:`estimate_fundamental` (8-point solver size).
@@ -85,6 +87,17 @@ class FundamentalResult:
 
 
 # ----------------------------------------------------------------------------------------- helpers
+def skew(v) -> np.ndarray:
+    """``[v]_x``, the ``(3, 3) float64`` cross-product matrix of a 3-vector: ``skew(v) @ w == cross(v, w)``
+    (used in ``F = K2^-T [t]_x R K1^-1`` and ``E = [t]_x R``).
+
+    >>> skew([1.0, 2.0, 3.0]) @ [4.0, 5.0, 6.0]  # = cross((1, 2, 3), (4, 5, 6))
+    array([-3.,  6., -3.])
+    """
+    x, y, z = np.asarray(v, dtype=np.float64).reshape(3)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
 def _h(pts: np.ndarray) -> np.ndarray:
     """``(N, 2)`` -> homogeneous ``(N, 3)``."""
     return np.hstack([pts, np.ones((len(pts), 1))])
@@ -190,6 +203,16 @@ def estimate_fundamental(
         :class:`FundamentalResult` (truthy), or a falsy :class:`Failure` when there are fewer than 8
         correspondences, non-finite coordinates, collinear points, when USAC finds no model, the
         model has rank < 2, or fewer than 8 inliers support it.
+
+    >>> import numpy as np
+    >>> from guidedmatch.testing.twoview import general_pair
+    >>> s = general_pair(rng=0, n_points=200, noise=0.3)          # known F, 0.3 px noise
+    >>> x2 = s.x2n.copy(); x2[:40] = np.random.default_rng(1).uniform(0, 640, (40, 2))   # 20 % outliers
+    >>> res = estimate_fundamental(s.x1n, x2)
+    >>> bool(res), res.F.shape, bool(res.inliers[:40].sum() < 5), bool(res.inliers[40:].mean() > 0.95)
+    (True, (3, 3), True, True)
+    >>> estimate_fundamental(s.x1n[:5], x2[:5]).reason
+    'fewer than 8 correspondences (5)'
     """
     t0 = time.perf_counter()
     if method not in USAC_METHODS:

@@ -6,6 +6,8 @@ as "internal error" with exit status 1 (``--debug`` shows the traceback).
 * :class:`ConfigError` -- a configuration value out of range, of the wrong type, NaN/inf, or an unknown name.
 * :class:`InputError` -- bad input data (feature arrays, descriptors, pair lists, file contents).
 * :class:`ImageReadError` -- an image file that is missing, unreadable, truncated or corrupt.
+* :class:`DataNotFoundError` -- evaluation data (``GUIDEDMATCH_DATA``) or a file of it is missing (also a
+  ``FileNotFoundError``).
 * :class:`OutputError` -- an output path that cannot be written (checked before any work).
 * :class:`DatabaseError` -- a COLMAP database / feature file that is missing, inconsistent or of the wrong kind.
 * :class:`DatabaseBusyError` -- another process is writing the same database.
@@ -13,7 +15,7 @@ as "internal error" with exit status 1 (``--debug`` shows the traceback).
 """
 from __future__ import annotations
 
-__all__ = ["GuidedMatchError", "ConfigError", "InputError", "ImageReadError", "OutputError", "DatabaseError",
+__all__ = ["GuidedMatchError", "ConfigError", "InputError", "ImageReadError", "DataNotFoundError", "OutputError", "DatabaseError",
            "DatabaseBusyError", "MemoryLimitError"]
 
 
@@ -31,6 +33,10 @@ class InputError(GuidedMatchError):
 
 class ImageReadError(InputError):
     """An image cannot be read completely (missing, not an image, truncated, corrupt)."""
+
+
+class DataNotFoundError(InputError, FileNotFoundError):
+    """The evaluation data folder, or a file the run needs from it, is missing."""
 
 
 class OutputError(GuidedMatchError):

@@ -3,10 +3,16 @@ and the guided candidate kernel of the progressive matcher.
 
 All kernels return, per query, the best and second-best candidate (index and distance) and count the
 exact number of descriptor distances they evaluated (the paper's "# matches" column, Teng & Dong §IV-A).
-Distances are L2 (Euclidean, not squared) for float descriptors and Hamming bit counts for binary ones.
+Distances returned by these kernels are **squared** L2 for float32 and byte-valued (uint8) descriptors
+(``top2_gemm``: ``max(|q|^2 + |t|^2 - 2 q.t, 0)`` in float32; ``guided_top2``: the sum of squared differences,
+exact integers for byte-valued rows) and Hamming bit counts for binary ones (uint64 words; not squared), all as
+float32. The callers take the square root for float descriptors: ``bruteforce.knn2`` and the matcher report L2
+(Euclidean, not squared), so ``MatchResult.distances`` are L2 or Hamming bits.
 Index ``-1`` and distance ``+inf`` mean "no such candidate".
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange, types
@@ -92,7 +98,8 @@ def _to_uint8_exact(d, out):
 
 
 def desc_dist(a, b):  # pragma: no cover - replaced by the Numba overload below inside jitted code
-    """Descriptor distance: squared L2 for float or byte-valued rows, Hamming for uint64 word rows."""
+    """Descriptor distance: squared L2 (float32) for float or byte-valued rows, Hamming bits for uint64 word
+    rows."""
     raise NotImplementedError
 
 
@@ -127,7 +134,8 @@ def _top2_gemm_py(dot, nn2, qn, write_back):
     ``max((dot * -2 + nn2) + qn, 0)`` is formed element by element in float32 with exactly that rounding order
     (no fast-math, so no contraction), i.e. bit-identical to the NumPy expression, but in one pass over the
     block instead of four. With ``write_back`` the distances are also stored into ``dot`` (for column minima).
-    Returns ``(i1, d1, i2, d2)`` (squared distances); ties keep the lowest column index (like ``np.argmin``).
+    Returns ``(i1, d1, i2, d2)``: ``(R,) int64`` column indices and ``(R,) float32`` **squared** L2 distances (the
+    caller takes the square root); ties keep the lowest column index (like ``np.argmin``).
     """
     r, c = dot.shape
     i1 = np.full(r, -1, np.int64)
@@ -157,7 +165,8 @@ def _top2_gemm_py(dot, nn2, qn, write_back):
 
 @njit(parallel=True, cache=True)
 def hamming_top2(q, t):
-    """Brute-force Hamming top-2 of every query word row ``q (N1, W) uint64`` among ``t (N2, W)``."""
+    """Brute-force Hamming top-2 of every query word row ``q (N1, W) uint64`` among ``t (N2, W)``: ``(i1, d1, i2,
+    d2)``, distances in bits as float32 (not squared)."""
     n1 = q.shape[0]
     n2 = t.shape[0]
     i1 = np.full(n1, -1, np.int64)
@@ -180,7 +189,8 @@ def hamming_top2(q, t):
 
 @njit(parallel=True, cache=True)
 def hamming_col_best(q, t):
-    """For every target row of ``t``: index of and distance to its nearest query row (mutual check)."""
+    """For every target row of ``t``: index of and Hamming distance (bits, float32) to its nearest query row
+    (mutual check)."""
     n2 = t.shape[0]
     n1 = q.shape[0]
     best = np.full(n2, -1, np.int64)
@@ -199,6 +209,25 @@ def hamming_col_best(q, t):
 
 
 # --------------------------------------------------------------------------- guided candidates
+class StripIndex(NamedTuple):
+    """Points indexed in strips cut into cells (:func:`build_strips`); a NamedTuple so the Numba kernels take it.
+
+    Strip ``s``, cell ``k`` (strip coordinate ``u`` in ``[u0 + s*width, u0 + (s+1)*width)``, other coordinate in
+    ``[k0 + k*cell, k0 + (k+1)*cell)``) holds rows ``offsets[s*ncells + k] : offsets[s*ncells + k + 1]`` of
+    ``pts_sorted``, which are the input points ``items[...]``.
+    """
+
+    u0: float                # strip origin along the strip axis, px
+    nstrips: int             # number of strips
+    width: float             # strip width, px
+    k0: float                # cell origin along the other axis, px
+    ncells: int              # cells per strip
+    cell: float              # cell height, px
+    offsets: np.ndarray      # (nstrips * ncells + 1,) int64 CSR offsets into items / pts_sorted
+    items: np.ndarray        # (N,) int64 input index of each sorted point
+    pts_sorted: np.ndarray   # (N, 2) float64 the points, strip by strip, cell by cell
+
+
 def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | None = None):
     """Index points ``(N, 2)`` in strips of ``width`` px along ``axis``, bucketed in cells along the other axis.
 
@@ -211,17 +240,15 @@ def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | Non
     ``cell`` defaults to ``width / 6``. Both sizes are enlarged when needed so the offset table has at most
     ``4 N + 4096`` cells (aligned coordinates can spread far out).
 
-    Returns the tuple ``S = (u0, nstrips, width, k0, ncells, cell, offsets, items, pts_sorted)``: strip ``s``,
-    cell ``k`` (``u`` in ``[u0 + s*width, ...)``, other coordinate in ``[k0 + k*cell, ...)``) holds rows
-    ``offsets[s*ncells + k] : offsets[s*ncells + k + 1]`` of ``pts_sorted (N,2) float64``, which are image-2
-    features ``items[...]``.
+    Returns a :class:`StripIndex`. ``build_strips(pts, w, axis=1, cell=w).items`` is also a row-major cell order
+    of the points (the matcher processes queries in it).
     """
     pts = np.asarray(pts, np.float64).reshape(-1, 2)
     width = float(width)
     cell = float(cell) if cell else width / 6.0
     n = len(pts)
     if n == 0:
-        return 0.0, 1, width, 0.0, 1, cell, np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+        return StripIndex(0.0, 1, width, 0.0, 1, cell, np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
     u, v = pts[:, axis], pts[:, 1 - axis]
     u0, k0 = float(u.min()), float(v.min())
     su, sv = float(u.max()) - u0, float(v.max()) - k0
@@ -234,7 +261,7 @@ def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | Non
     sid = np.minimum(((u - u0) // width).astype(np.int64), ns - 1)
     kid = np.minimum(((v - k0) // cell).astype(np.int64), nk - 1)
     items, offsets = counting_order(sid * nk + kid, ns * nk)
-    return u0, ns, width, k0, nk, cell, offsets, items, np.ascontiguousarray(pts[items])
+    return StripIndex(u0, ns, width, k0, nk, cell, offsets, items, np.ascontiguousarray(pts[items]))
 
 
 @njit(cache=True)
@@ -261,14 +288,14 @@ def counting_order(key, nbins):
 def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1, b2, j2, cnt):
     # all points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the region
     # predicate lo <= x <= hi and |a x + b y + c| <= band ([kmin, kmax] only limits the scan)
-    k0 = S[3]
-    nk = S[4]
-    h = S[5]
+    k0 = S.k0
+    nk = S.ncells
+    h = S.cell
     if kmax < k0 or kmin > k0 + nk * h:
         return b1, j1, b2, j2, cnt
     c0 = 0 if kmin <= k0 else min(int((kmin - k0) // h), nk - 1)
     c1 = nk - 1 if kmax >= k0 + nk * h else min(int((kmax - k0) // h), nk - 1)
-    offsets, items, ps = S[6], S[7], S[8]
+    offsets, items, ps = S.offsets, S.items, S.pts_sorted
     a = lq[0]
     b = lq[1]
     c = lq[2]
@@ -303,12 +330,12 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     d1 = np.full(nq, np.inf, np.float32)
     d2 = np.full(nq, np.inf, np.float32)
     ncand = np.zeros(nq, np.int64)
-    w = cols[2]
-    gx0 = cols[0]
-    gx1 = gx0 + cols[1] * w
-    wr = rows[2]
-    gy0 = rows[0]
-    gy1 = gy0 + rows[1] * wr
+    w = cols.width
+    gx0 = cols.u0
+    gx1 = gx0 + cols.nstrips * w
+    wr = rows.width
+    gy0 = rows.u0
+    gy1 = gy0 + rows.nstrips * wr
     eps = 1e-7
     for q in prange(nq):
         qd = desc1[queries[q]]
@@ -325,13 +352,13 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
         cnt = 0
         xa = max(lo, gx0)
         xb = min(hi, gx1)
-        if xa > xb or cols[7].shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
+        if xa > xb or cols.items.shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
             continue  # empty x-range, no image-2 points, or undefined epipolar line (query at the epipole)
         if not use_band or abs(b) >= abs(a):
             # vertical strips sorted by y; the band's y-extent over the strip's x-interval bounds the scan
             m = band / abs(b) if use_band else 0.0
             s_lo = int((xa - gx0) // w)
-            s_hi = min(int((xb - gx0) // w), cols[1] - 1)
+            s_hi = min(int((xb - gx0) // w), cols.nstrips - 1)
             for s in range(s_lo, s_hi + 1):
                 if use_band:
                     u0 = max(gx0 + s * w, xa)
@@ -362,7 +389,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
             if ry0 > ry1:
                 continue
             r_lo = max(0, int((ry0 - gy0) // wr))
-            r_hi = min(rows[1] - 1, int((ry1 - gy0) // wr))
+            r_hi = min(rows.nstrips - 1, int((ry1 - gy0) // wr))
             for r in range(r_lo, r_hi + 1):
                 v0 = gy0 + r * wr
                 v1 = v0 + wr
@@ -416,7 +443,7 @@ def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, ro
     lines = np.ascontiguousarray(lines, np.float64).reshape(-1, 3)
     if len(lines) != len(queries) or len(xlo) != len(queries) or len(xhi) != len(queries):
         raise ValueError("queries, lines, xlo and xhi must have the same length")
-    if use_band and len(cols[7]) and not len(rows[7]):
+    if use_band and len(cols.items) and not len(rows.items):
         if np.any(np.abs(lines[:, 0]) > np.abs(lines[:, 1])):
             raise ValueError("near-vertical epipolar lines need the row strips (build_strips(pts, width, axis=1))")
     fm = desc1.dtype.kind == "f"

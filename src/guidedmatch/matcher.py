@@ -1,47 +1,52 @@
-"""The progressive guided matcher (Teng & Dong §III-A, "System architecture").
+"""The progressive guided matcher (Teng & Dong §III-A, "System architecture"), read top to bottom as the method.
 
-Modes
------
-``bf``          exact brute force (:mod:`guidedmatch.bruteforce`).
+Modes (:class:`~guidedmatch.config.Mode`)
+-----------------------------------------
+``bf``          exact brute force (:mod:`guidedmatch.bruteforce`), the paper's baseline.
 ``epi``         classic epipolar-guided matching: after the first models, candidates = epipolar band only.
 ``so``          spatial order only: candidates = admissible image-2 x-range (§III-C).
 ``so+epi``      x-range ∩ band (§III-C + §III-D).
 ``so+epi+ia``   the same in coordinates aligned by the homography from F (§III-E, approach (c) by default).
 
-Flow (all modes except ``bf``)
-------------------------------
-1. **Grouping** (§III-A): image-1 features are put into ``num_groups`` x-intervals and drawn round-robin
-   (within a group strongest response first, else a seeded random order), so the first matches cover
-   the whole image width.
-2. **Progressive phase**: drawn features are matched in mini-batches of ``batch_size`` against their
-   current candidate set -- all of image 2 before the first model (:class:`~guidedmatch.bruteforce.DenseKnn2`:
-   GEMM in one single-threaded BLAS chunk per core, or popcount), the guided region afterwards. Each
-   image-1 feature is matched once. After every ``update_every`` (200) newly accepted correspondences
-   the models are refit on *all* correspondences so far (``num_updates`` = 3 times): F by robust RANSAC,
-   the alignment homography from F (mode IA), then the spatial-order model on aligned x-coordinates.
-   Because batches are processed whole, an update happens after the batch in which the 200th
-   correspondence was accepted (the overshoot is < ``batch_size`` queries).
-3. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized
-   call of the Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the strip index of
-   :func:`~guidedmatch.kernels.build_strips`): features outside the overlap window ω* are dropped unmatched;
-   each remaining feature's candidates are the image-2 features in its admissible x-range (aligned
-   coordinates) and within ``band_px`` of its epipolar line.
-4. **Re-check** (beyond the paper, ``recheck``): matches accepted before the final model are tested
-   against the final x-range and band and dropped when outside (the fix the paper suggests in §IV-C).
+Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per step, in this order)
+-------------------------------------------------------------------------------------------------
+1. **Draw order** (§III-A, "Feature Grouping", :func:`draw_order`): image-1 features are put into ``num_groups``
+   x-intervals and drawn round-robin (within a group strongest response first, else a seeded random order), so the
+   first matches cover the whole image width.
+2. **Unguided phase** (§III-A): drawn features are matched in mini-batches of ``batch_size`` against all of image 2
+   (:class:`~guidedmatch.bruteforce.DenseKnn2`: GEMM in one single-threaded BLAS chunk per core, or popcount).
+3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): after every ``update_every`` (200) newly accepted
+   correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 times): F by robust
+   RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E), then the spatial-order model on aligned
+   x-coordinates (§III-B, §III-C). Batches are processed whole, so an update happens after the batch in which the
+   200th correspondence was accepted (the overshoot is < ``batch_size`` queries).
+4. **Guided phase**: between updates, batches are matched in their search regions under the current models.
+5. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized call of the
+   Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the :class:`~guidedmatch.kernels.StripIndex`
+   of the aligned image-2 points): features outside the overlap window ω* are dropped unmatched; each remaining
+   feature's candidates are the image-2 features in its admissible x-range (aligned coordinates) and within
+   ``band_px`` of its epipolar line (:func:`search_regions`).
+6. **Re-check** (beyond the paper, ``recheck``): matches accepted before the final models are tested against the
+   final x-range and band and dropped when outside (the fix the paper suggests in §IV-C).
+7. **One-to-one** (beyond the paper, :func:`one_to_one`) and the optional **mutual check** (:func:`mutual_check`).
+8. **Result**: matches sorted by image-1 index, per-match flags (incl. the spatial-order probability within the final
+   match set, Talker Eq. 12) and a typed :class:`~guidedmatch.results.MatchStats`.
 
-Coordinates: the band is applied in the aligned frame, with ``F_a = H2^-T F H1^-1`` and the line
-normalized there ("the subsequent feature filtering is also performed according to the transformed
-coordinates", §III-E); ``stats["alignment_scale"]`` reports how much H2 stretches image-2 distances
-(min/max local scale over the image-2 keypoints), i.e. the band width in original pixels.
+Coordinates: the band is applied in the aligned frame, with ``F_a = H2^-T F H1^-1`` and the line normalized there
+("the subsequent feature filtering is also performed according to the transformed coordinates", §III-E);
+``ModelUpdate.alignment_scale`` reports how much H2 stretches image-2 distances (min/max local scale over the
+image-2 keypoints), i.e. the band width in original pixels.
 
-Ratio test inside the candidate set: with >= 2 candidates, keep when ``d1 < ratio * d2``; with exactly 1
-candidate there is no second neighbour and ``single_candidate`` decides ("reject", the default: drop it, since
-nothing vouches for it -- on the demo scene this keeps the same true matches at +1.6 points precision; "accept":
-keep it, flagged in ``flags["single_candidate"]``); with 0 candidates the feature is unmatched.
-``one_to_one`` (default on; ``mutual=True`` does the same in guided modes) keeps, for every image-2 feature, only
-the closest of the image-1 features matched to it -- the cheap half of a mutual check (a full reverse search would
-cost N1·N2). A small candidate set makes the ratio test easier to pass than in brute force, so this filter is what
-brings guided precision back above brute force's (Oxford, 12 pairs, SIFT: 88.9 % -> 94.2 %, BF 93.8 %).
+Ratio test inside the candidate set: with >= 2 candidates, keep when ``d1 < ratio * d2``; with exactly 1 candidate
+there is no second neighbour and ``single_candidate`` decides ("reject", the default: drop it, since nothing vouches
+for it -- on the demo scene this keeps the same true matches at +1.6 points precision; "accept": keep it, flagged in
+``flags["single_candidate"]``); with 0 candidates the feature is unmatched.
+
+``one_to_one`` keeps, for every image-2 feature, only the closest of the image-1 features matched to it -- the cheap
+half of a mutual check. A small candidate set makes the ratio test easier to pass than in brute force, so this filter
+is what brings guided precision back above brute force's (Oxford, 12 pairs, SIFT: 88.9 % -> 94.2 %, BF 93.8 %). Its
+default (None) runs it in the guided modes only, so ``bf`` stays the paper's ratio-test baseline. ``mutual`` is the
+full check in every mode: ``(i, j)`` survives only if ``i`` is the nearest of *all* image-1 features to ``j``.
 """
 from __future__ import annotations
 
@@ -49,85 +54,142 @@ import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from . import kernels
 from .bruteforce import DenseKnn2, check_descriptors, knn2, match_bruteforce
+from .config import MODES, MatcherConfig, Mode
 from .epipolar import map_points
-from .results import MatchResult, empty_pairs
+from .features import as_features
+from .jit import compile_monitor, exclude_compile_time
+from .results import (CandidateStats, Fallback, MatchResult, MatchStats, ModelUpdate, PhaseTimes, default_flags,
+                      empty_pairs)
+from .validation import config_from
 
-MODES = ("bf", "epi", "so", "so+epi", "so+epi+ia")
-
-
-@dataclass(frozen=True)
-class MatcherConfig:
-    """Matcher settings; defaults are the paper's where it states them (§IV)."""
-
-    num_groups: int = 16                 # x-interval groups of image-1 features drawn round-robin (§III-A; count not published)
-    update_every: int = 200              # new correspondences between model updates (§IV: 200)
-    num_updates: int = 3                 # model updates before the final vectorized pass (§IV: 3)
-    so_threshold: float = 0.01           # Th: keep image-2 gaps whose correctness probability >= Th (§III-C, §IV)
-    band_px: float = 5.0                 # epipolar band half-width in (aligned) image-2 pixels (§IV: 5 px)
-    alignment: str = "c"                 # alignment a|b|c|c_inplane|d (§III-E; c = K2 R_u R^T K2^-1 as printed, the paper's
-                                         # choice; c_inplane = the in-plane twist the text describes, docs/alignment.md)
-    ratio: float | None = 0.8            # Lowe ratio inside the candidate set; None disables
-    single_candidate: str = "reject"     # a feature with exactly one candidate: "reject" (no ratio test possible) or "accept"
-    mutual: bool = False                 # bf: mutual nearest neighbours (full reverse search); guided: same as one_to_one
-    one_to_one: bool = True              # guided modes: keep only the closest image-1 feature per image-2 feature (beyond
-                                         # the paper; Oxford, 12 pairs: precision 88.9 % -> 94.2 %, true -2.5 %)
-    max_distance: float | None = None    # drop matches with a larger descriptor distance (L2 or Hamming bits)
-    ransac_method: str = "magsac"        # F estimator (OpenCV USAC): magsac|accurate|default|prosac|ransac|lmeds
-    ransac_threshold: float = 1.5        # RANSAC inlier threshold for F, pixels
-    so_overlap: str = "k1d"              # overlap-window search of the SO model: k1d|k2d|none (Talker §4.3)
-    so_probability: str = "gaussian"     # correctness probability: gaussian (Talker fast) | exact (hypergeometric)
-    batch_size: int = 64                 # queries per mini-batch in the progressive phase
-    strip_px: float | None = None        # width of the strips indexing image-2 features for the candidate kernel;
-                                         # None: chosen from the lines' slopes and the point density (speed only)
-    recheck: bool = True                 # beyond the paper: re-test early matches against the final models
-    outside_window: str = "band"         # image-1 feature outside the SO window ω*: "drop" (paper §III-B.2) or, when an
-                                         # F model exists and the feature lies within the x-extent of the F inliers,
-                                         # "band": match it in the epipolar band only (beyond the paper)
-    min_model_matches: int = 16          # fewer correspondences than this: no model is fitted (reported)
-    seed: int = 0                        # seeds RANSAC and the draw order within groups without responses
-
-    @classmethod
-    def paper(cls, **overrides) -> "MatcherConfig":
-        """The paper's configuration (no re-check, no one-to-one filter, drop features outside ω*)."""
-        return cls(**{"recheck": False, "outside_window": "drop", "one_to_one": False, **overrides})
-
-    def replace(self, **changes) -> "MatcherConfig":
-        return dataclasses.replace(self, **changes)
+__all__ = ["match", "MatcherConfig", "Mode", "MODES", "GuidanceModels", "Regions", "search_regions", "draw_order",
+           "one_to_one", "mutual_check"]
 
 
-@dataclass
-class _Models:
-    """Models of one update (mutable only inside :class:`GuidedMatcher`)."""
+# ====================================================================================================== entry point
+def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *, return_models: bool = False):
+    """Match image-1 features to image-2 features with ``mode`` (the package's one matching entry point).
 
-    F: np.ndarray | None = None               # original coordinates
-    H1: np.ndarray = field(default_factory=lambda: np.eye(3))
-    H2: np.ndarray = field(default_factory=lambda: np.eye(3))
-    so: object | None = None                  # SpatialOrderModel when usable
-    pts1a: np.ndarray | None = None           # aligned image-1 keypoints (N1, 2)
-    pts2a: np.ndarray | None = None           # aligned image-2 keypoints (N2, 2)
-    cols: tuple | None = None                 # kernels.build_strips(pts2a, axis=0): x strips cut into y cells
-    rows: tuple | None = None                 # the same along y (both built on first use)
-    info: dict = field(default_factory=dict)
+    Args:
+        features1, features2: :class:`~guidedmatch.features.Features`, or a tuple ``(keypoints (N,2) px,
+            descriptors (N,D), image_size (w,h))`` (float descriptors: L2; uint8: packed bits, Hamming).
+        mode: ``"bf" | "epi" | "so" | "so+epi" | "so+epi+ia"`` (:data:`~guidedmatch.config.MODES`) or a
+            :class:`~guidedmatch.config.Mode`.
+        config: :class:`~guidedmatch.config.MatcherConfig`, a dict of its fields, or None (defaults).
+        return_models: also return the final :class:`GuidanceModels` (None for ``bf`` or when no model was fitted).
 
-    @property
-    def guided(self) -> bool:
-        return self.F is not None or self.so is not None
+    Returns:
+        :class:`~guidedmatch.results.MatchResult`: ``pairs (M,2) int64`` sorted by image-1 index, ``distances (M,)
+        float32``, ``flags`` (``phase``, ``single_candidate``, ``in_band``, ``so_prob``) and ``stats``
+        (:class:`~guidedmatch.results.MatchStats`). With ``return_models=True``: ``(MatchResult, GuidanceModels |
+        None)``.
+
+    Raises:
+        ConfigError: unknown mode or bad config. InputError: descriptors of different kinds or lengths, bad arrays.
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> xy, desc = rng.uniform(0, 100, (50, 2)), rng.integers(0, 255, (50, 32)).astype(np.float32)
+    >>> res = match((xy, desc, (100, 100)), (xy[::-1], desc[::-1], (100, 100)), "so+epi+ia")
+    >>> bool(np.all(res.pairs[:, 1] == 49 - res.pairs[:, 0])), len(res) == 50
+    (True, True)
+    >>> res.stats.comparisons == 50 * 50   # too few features for a model: brute force, reported
+    True
+    >>> res.stats.fallbacks[0].what
+    'updates'
+    """
+    mode = Mode.parse(mode)
+    config = config_from(MatcherConfig, config)
+    f1, f2 = as_features(features1, "features1"), as_features(features2, "features2")
+    d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors)
+    with compile_monitor() as jit:  # a first call compiles Numba kernels: reported apart from time_s
+        run = None if not mode.guided else _GuidedRun(config, mode, f1, f2, d1, d2, binary)
+        res = _match_bf(config, f1, f2, d1, d2, binary) if run is None else run.run()
+    res = exclude_compile_time(res, jit.seconds)
+    return (res, run.guidance if run is not None else None) if return_models else res
+
+
+def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary) -> MatchResult:
+    """Mode ``bf``: exact 2-NN over all of image 2, ratio / max-distance / mutual tests, then one-to-one if on."""
+    t0 = time.perf_counter()
+    res = match_bruteforce(d1, d2, ratio=c.ratio, mutual=c.mutual, max_distance=c.max_distance)
+    pairs, dist = res.pairs, res.distances
+    dropped = 0
+    if c.one_to_one_in(Mode.parse("bf")) and len(pairs):
+        sel = one_to_one(pairs[:, 0], pairs[:, 1], dist)
+        dropped = len(pairs) - len(sel)
+        pairs, dist = pairs[sel], dist[sel]
+    n1, n2 = len(d1), len(d2)
+    stats = dataclasses.replace(res.stats, time_s=time.perf_counter() - t0, dropped_by_one_to_one=dropped,
+                                phase_queries=(n1,), phase_comparisons=(n1 * n2,), queries_matched_against=n1,
+                                config=c)
+    return MatchResult(pairs, dist, stats, default_flags(len(pairs)))
+
+
+# ================================================================================================ §III-A draw order
+def draw_order(x: np.ndarray, width: float, num_groups: int, key: np.ndarray) -> np.ndarray:
+    """Round-robin draw order of image-1 features over x-interval groups (Teng & Dong §III-A, "Feature Grouping").
+
+    Feature ``i`` belongs to group ``g = clip(floor(x_i / width * G), 0, G - 1)``. Within a group features are taken
+    by ascending ``key`` (ties by index); the order is: the first of every group (groups left to right), then the
+    second of every group, and so on.
+
+    Args:
+        x: ``(N,)`` image-1 x-coordinates, px. width: image width, px (>= max x + 1 in practice).
+        num_groups: ``G``. key: ``(N,) float32`` rank key (the matcher uses ``-response``, or seeded uniform noise).
+
+    Returns:
+        ``(N,) int64`` permutation of ``arange(N)``.
+
+    >>> draw_order(np.array([0.0, 1.0, 60.0, 61.0, 2.0]), 100.0, 2, np.array([3, 1, 2, 1, 2], np.float32))
+    array([1, 3, 4, 2, 0])
+    """
+    n = len(x)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    g = np.clip((np.asarray(x, np.float64) / width * num_groups).astype(np.int64), 0, num_groups - 1)
+    by_key = _argsort_f32(key)
+    # stable counting sort by group keeps the key order inside each group
+    order_g, offsets = kernels.counting_order(g[by_key], num_groups)
+    order_g = by_key[order_g]
+    within = np.empty(n, np.int64)
+    within[order_g] = np.arange(n) - np.repeat(offsets[:-1], np.diff(offsets))  # rank inside the group
+    # round-robin: rank within group, then group (a stable sort of within * G + g, done by counting)
+    rr, _ = kernels.counting_order(within * num_groups + g, (int(within.max()) + 1) * num_groups)
+    return rr
+
+
+# ============================================================================================ search regions (§III-C/D)
+class Regions(NamedTuple):
+    """Search regions of Q image-1 features under one set of models (:func:`search_regions`).
+
+    ``keep (Q,) bool``: matched at all (inside ω*, or rescued); ``lo, hi (Q,) float64``: admissible aligned image-2
+    x-range (±inf without a spatial-order model); ``lines (Q,3)``: aligned epipolar lines scaled to a²+b²=1 (None
+    without F; a query at the epipole gets ``[0, 0, inf]``, which matches nothing); ``rescued (Q,) bool``: outside ω*
+    but kept for band-only matching.
+    """
+
+    keep: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    lines: np.ndarray | None
+    rescued: np.ndarray
 
 
 def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x1_range=None,
-                   outside_window: str = "drop"):
+                   outside_window: str = "drop") -> Regions:
     """Search region of image-1 features (aligned coordinates ``pts1a (Q,2)``) under one set of models.
 
-    Returns ``(keep, lo, hi, lines, rescued)``: ``keep (Q,)`` feature inside the overlap window ω* (or rescued),
-    ``[lo, hi]`` the admissible aligned image-2 x-range (±inf without a spatial-order model), ``lines (Q,3)`` the
-    aligned epipolar lines scaled to a²+b²=1 (None without F; a query at the epipole gets ``[0, 0, inf]``, which
-    matches nothing), ``rescued (Q,)`` features outside ω* kept for band-only matching because they lie inside
-    ``inlier_x1_range`` (``outside_window="band"`` with an F model).
+    The spatial-order x-range (§III-C, :func:`~guidedmatch.spatial_order.admissible_x_ranges`) when ``so`` is given,
+    the epipolar band's line (§III-D) when ``F_aligned`` is given. With ``outside_window="band"``, features outside
+    ω* whose x lies in ``inlier_x1_range`` (the x-extent of the F inliers in aligned image 1) are rescued: matched in
+    the band only.
     """
     nq = len(pts1a)
     keep, lo, hi = np.ones(nq, bool), np.full(nq, -np.inf), np.full(nq, np.inf)
@@ -149,131 +211,124 @@ def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x
         lines[bad] = [0.0, 0.0, np.inf]
         nrm[bad] = 1.0
         lines = np.ascontiguousarray(lines / nrm[:, None])
-    return keep, lo, hi, lines, rescued
+    return Regions(keep, lo, hi, lines, rescued)
 
 
 @dataclass(frozen=True, eq=False)
 class GuidanceModels:
-    """The final models of a guided run (``match(..., return_models=True)``), for plots and checks.
+    """The models of one update (§III-B..E); the final ones are returned by ``match(..., return_models=True)``.
 
     Attributes:
         F: ``(3,3)`` fundamental matrix in original pixel coordinates, or None (no epipolar guidance).
+        F_aligned: F in aligned coordinates, ``H2^-T F H1^-1`` (None without F).
+        inlier_x1_range: ``(min, max)`` aligned image-1 x of the F inliers (band-only rescue), or None.
         H1, H2: alignment homographies applied to image-1 / image-2 keypoints (identity without IA).
         so: the :class:`~guidedmatch.spatial_order.SpatialOrderModel` (aligned x), or None.
         pts1a, pts2a: aligned keypoints ``(N1,2)``, ``(N2,2)``.
-        band_px: epipolar band half-width (aligned pixels).
-        final_queries: image-1 indices matched in the final vectorized pass.
+        band_px: epipolar band half-width (aligned pixels). outside_window: the run's policy ("drop" | "band").
+        final_queries: image-1 indices matched in the final vectorized pass (set on the final models).
     """
 
     F: np.ndarray | None
+    F_aligned: np.ndarray | None
+    inlier_x1_range: tuple[float, float] | None
     H1: np.ndarray
     H2: np.ndarray
     so: object | None
     pts1a: np.ndarray
     pts2a: np.ndarray
     band_px: float
-    final_queries: np.ndarray
-    F_aligned: np.ndarray | None = None
-    inlier_x1_range: tuple | None = None  # x-extent of the F inliers in image 1 (band-only policy)
-    outside_window: str = "drop"          # MatcherConfig.outside_window of the run
+    outside_window: str = "drop"
+    final_queries: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
-    def regions(self, queries: np.ndarray):
-        """Per image-1 feature: ``(keep, lo, hi, lines)`` -- as the matcher used them (:func:`search_regions`)."""
+    @property
+    def guided(self) -> bool:
+        """Some guidance exists (an F model or a usable spatial-order model)."""
+        return self.F is not None or self.so is not None
+
+    def regions(self, queries: np.ndarray) -> Regions:
+        """:func:`search_regions` of image-1 features ``queries`` -- as the matcher used them."""
         queries = np.asarray(queries, np.int64)
-        keep, lo, hi, lines, _ = search_regions(self.pts1a[queries], self.so, self.F_aligned, self.inlier_x1_range,
-                                                self.outside_window)
-        return keep, lo, hi, lines
+        return search_regions(self.pts1a[queries], self.so, self.F_aligned, self.inlier_x1_range, self.outside_window)
 
     def candidates(self, i1: int) -> np.ndarray:
         """Reference (O(N2), plain NumPy) candidate set of image-1 feature ``i1``: image-2 indices."""
-        keep, lo, hi, lines = self.regions(np.array([i1]))
-        if not keep[0]:
+        r = self.regions(np.array([i1]))
+        if not r.keep[0]:
             return np.zeros(0, np.int64)
         x = self.pts2a
-        ok = (x[:, 0] >= lo[0]) & (x[:, 0] <= hi[0])
-        if lines is not None:
-            ok &= np.abs(x @ lines[0, :2] + lines[0, 2]) <= self.band_px
+        ok = (x[:, 0] >= r.lo[0]) & (x[:, 0] <= r.hi[0])
+        if r.lines is not None:
+            ok &= np.abs(x @ r.lines[0, :2] + r.lines[0, 2]) <= self.band_px
         return np.flatnonzero(ok)
 
 
-def _percentiles(x: np.ndarray) -> dict:
-    if len(x) == 0:
-        return dict(mean=0.0, p50=0.0, p90=0.0, p99=0.0, max=0)
-    p = np.percentile(x, [50, 90, 99])
-    return dict(mean=float(x.mean()), p50=float(p[0]), p90=float(p[1]), p99=float(p[2]), max=int(x.max()))
+# ============================================================================================== match filters
+def one_to_one(q: np.ndarray, j: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Indices (ascending) of the matches kept when every image-2 feature keeps only its closest image-1 match.
 
+    Match ``k`` is ``(q[k], j[k])`` at descriptor distance ``d[k]``; among the matches of one ``j`` the smallest
+    ``d`` wins, ties by the smaller ``q``.
 
-class GuidedMatcher:
-    """Holds a :class:`MatcherConfig`; ``matcher(f1, f2, mode)`` runs one match (see module doc)."""
-
-    def __init__(self, config: MatcherConfig | None = None):
-        self.config = config or MatcherConfig()
-        c = self.config
-        from .alignment import APPROACHES
-
-        if c.alignment not in APPROACHES:
-            raise ValueError(f"alignment must be one of {', '.join(APPROACHES)}; got {c.alignment!r}")
-        if c.outside_window not in ("drop", "band"):
-            raise ValueError(f"outside_window must be 'drop' or 'band'; got {c.outside_window!r}")
-        if c.single_candidate not in ("accept", "reject"):
-            raise ValueError(f"single_candidate must be 'accept' or 'reject'; got {c.single_candidate!r}")
-        if c.update_every < 8 or c.num_updates < 0 or c.batch_size < 1 or c.num_groups < 1 or c.band_px <= 0:
-            raise ValueError("update_every >= 8, num_updates >= 0, batch_size >= 1, num_groups >= 1, band_px > 0 required")
-        if c.ratio is not None and not 0 < c.ratio <= 1:
-            raise ValueError(f"ratio must be in (0, 1] or None; got {c.ratio}")
-
-    def __call__(self, f1, f2, mode: str = "so+epi+ia") -> MatchResult:
-        return self.match(f1, f2, mode)
-
-    # ------------------------------------------------------------------ public
-    def match(self, f1, f2, mode: str = "so+epi+ia", *, return_models: bool = False):
-        """Match :class:`~guidedmatch.features.Features` ``f1`` -> ``f2`` with ``mode``.
-
-        With ``return_models=True`` returns ``(MatchResult, GuidanceModels | None)``.
-        """
-        mode = mode.lower()
-        if mode not in MODES:
-            raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
-        c = self.config
-        d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors)
-        if mode == "bf":
-            res = match_bruteforce(d1, d2, ratio=c.ratio, mutual=c.mutual, max_distance=c.max_distance)
-            res = MatchResult(res.pairs, res.distances, {**res.stats, "mode": "bf", "fallbacks": []},
-                              {"phase": np.zeros(len(res), np.int64)})
-            return (res, None) if return_models else res
-        run = _Run(self.config, mode, f1, f2, d1, d2, binary)
-        res = run.run()
-        return (res, run.guidance) if return_models else res
-
-
-def match(features1, features2, mode: str = "so+epi+ia", config: MatcherConfig | None = None, *,
-          return_models: bool = False):
-    """Match two feature sets; see :class:`GuidedMatcher` and the module doc for the method.
-
-    Args:
-        features1, features2: :class:`~guidedmatch.features.Features` (same descriptor kind and length).
-        mode: ``"bf" | "epi" | "so" | "so+epi" | "so+epi+ia"``.
-        config: :class:`MatcherConfig` (default: the paper's settings plus the re-check).
-
-    Returns:
-        :class:`~guidedmatch.results.MatchResult`: ``pairs (M,2)``, ``distances (M,)``, ``flags`` (``phase``
-        = number of model updates done when the match was made, ``in_band``, ``so_prob``,
-        ``single_candidate``) and ``stats`` (``comparisons``, candidates per query, model updates with
-        N_G / ω* / F inliers / focal lengths, the alignment H, time per phase, ``fallbacks``).
-        With ``return_models=True``: ``(MatchResult, GuidanceModels | None)``.
+    >>> one_to_one(np.array([0, 1, 2]), np.array([5, 5, 6]), np.array([2.0, 1.0, 3.0], np.float32))
+    array([1, 2])
     """
-    return GuidedMatcher(config).match(features1, features2, mode, return_models=return_models)
+    if len(q) == 0:
+        return np.zeros(0, np.int64)
+    o = np.lexsort((q, d, j))
+    first = np.r_[True, np.diff(j[o]) != 0]
+    return np.sort(o[first])
 
 
-class _Run:
-    """State of one guided match (not public)."""
+def mutual_check(d1: np.ndarray, d2: np.ndarray, q: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, int]:
+    """Indices (ascending) of the matches ``(q[k], j[k])`` whose image-1 feature is the nearest of *all* image-1
+    descriptors ``d1`` to image-2 descriptor ``d2[j[k]]`` (ties: lowest index, as brute force); also returns the
+    number of descriptor distances evaluated (``len(unique(j)) * N1``)."""
+    if len(q) == 0:
+        return np.zeros(0, np.int64), 0
+    uj, inv = np.unique(j, return_inverse=True)
+    (nn, _s1, _i2, _s2), _ = knn2(d2[uj], d1, checked=True)
+    return np.flatnonzero(nn[inv] == q), len(uj) * len(d1)
 
-    def __init__(self, config, mode, f1, f2, d1, d2, binary):
+
+class _Accepted(NamedTuple):
+    """Matches accepted from one batch of queries: image-1 index, image-2 index, distance, single-candidate flag."""
+
+    q: np.ndarray
+    j: np.ndarray
+    d: np.ndarray
+    single: np.ndarray
+
+
+class _Collected:
+    """Matches accumulated over the phases of a run (with the phase each was made in)."""
+
+    def __init__(self):
+        self.parts: list[tuple[_Accepted, int]] = []
+
+    def add(self, acc: _Accepted, phase: int) -> None:
+        self.parts.append((acc, phase))
+
+    def pairs_so_far(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.concatenate([a.q for a, _ in self.parts]), np.concatenate([a.j for a, _ in self.parts])
+
+    def arrays(self):
+        cat = lambda xs, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(0, dt)  # noqa: E731
+        q = cat([a.q for a, _ in self.parts], np.int64)
+        j = cat([a.j for a, _ in self.parts], np.int64)
+        d = cat([a.d for a, _ in self.parts], np.float32)
+        single = cat([a.single for a, _ in self.parts], bool)
+        phase = cat([np.full(len(a.q), p, np.int64) for a, p in self.parts], np.int64)
+        return q, j, d, single, phase
+
+
+# ============================================================================================== the guided run
+class _GuidedRun:
+    """State of one guided match (not public); :meth:`run` is the method in order."""
+
+    def __init__(self, config: MatcherConfig, mode: Mode, f1, f2, d1, d2, binary):
         self.c = config
         self.mode = mode
-        self.use_so = mode.startswith("so")
-        self.use_epi = "epi" in mode
-        self.use_ia = mode.endswith("+ia")
         self.f1, self.f2 = f1, f2
         self.d1, self.d2, self.binary = d1, d2, binary
         self.kdesc1 = kernels.pack_bits_u64(d1) if binary else d1
@@ -283,11 +338,10 @@ class _Run:
             u1, u2 = kernels.as_exact_uint8(d1), kernels.as_exact_uint8(d2)
             if u1 is not None and u2 is not None:
                 self.kdesc1, self.kdesc2, self.byte_exact = u1, u2, True
-        self.fallbacks: list[dict] = []
+        self.fallbacks: list[Fallback] = []
         self.ncand: list[np.ndarray] = []
-        self.timing = dict(initial_bf_s=0.0, model_fit_s=0.0, guided_progressive_s=0.0, final_pass_s=0.0, recheck_s=0.0,
-                           so_prob_s=0.0)
-        self.updates: list[dict] = []
+        self.timing = dict.fromkeys((f.name for f in dataclasses.fields(PhaseTimes)), 0.0)
+        self.updates: list[ModelUpdate] = []
         self.dropped_outside_overlap = 0
         self.no_region = 0
         self.band_only = 0
@@ -295,54 +349,85 @@ class _Run:
         self.phase_queries: dict[int, int] = {}
         self.phase_comparisons: dict[int, int] = {}
         self.guidance: GuidanceModels | None = None
+        self.strip_cache: dict[int, kernels.StripIndex] = {}  # strip indexes of the current models' image-2 points
+        self.mutual_comparisons = 0
         self.no_strips = kernels.build_strips(np.zeros((0, 2)), 1.0)
 
+    def fallback(self, what: str, reason: str) -> None:
+        """Report a degraded step (:class:`~guidedmatch.results.Fallback`)."""
+        self.fallbacks.append(Fallback(what, reason, len(self.updates)))
+
     def account(self, nq: int, ncomp: int) -> None:
+        """Count ``nq`` queries and ``ncomp`` descriptor distances in the current phase (= updates done)."""
         k = len(self.updates)
         self.phase_queries[k] = self.phase_queries.get(k, 0) + int(nq)
         self.phase_comparisons[k] = self.phase_comparisons.get(k, 0) + int(ncomp)
 
-    # ------------------------------------------------------------------ helpers
-    def fallback(self, what: str, reason: str) -> None:
-        self.fallbacks.append(dict(what=what, reason=reason, at_update=len(self.updates)))
+    # ------------------------------------------------------------------------------------------ the method
+    def run(self) -> MatchResult:
+        """The method: steps 1-8 of the module doc, in order (one method each, below in the same order)."""
+        t_start = time.perf_counter()
+        order = self.draw_order()
+        got = _Collected()
+        models, rest = self.progressive_phase(order, got)
+        self.final_pass(models, rest, got)
+        q, j, d, single, phase = got.arrays()
+        q, j, d, flags, dropped_recheck = self.recheck(models, q, j, d, dict(phase=phase, single_candidate=single))
+        q, j, d, flags, dropped_o2o, dropped_mutual = self.filters(q, j, d, flags)
+        o = np.argsort(q, kind="stable")
+        q, j, d = q[o], j[o], d[o]
+        flags = {k: v[o] for k, v in flags.items()}
+        flags["so_prob"] = self.so_probabilities(models, q, j)
+        return self.result(t_start, models, q, j, d, flags, dropped_recheck, dropped_o2o, dropped_mutual)
 
     def draw_order(self) -> np.ndarray:
-        """Round-robin order over x-interval groups (§III-A, "Feature Grouping")."""
+        """Step 1 (§III-A): :func:`draw_order` keyed by detector response (strongest first), else seeded noise."""
         n1 = len(self.d1)
+        if n1 == 0 or len(self.d2) == 0:
+            return np.zeros(0, np.int64)
         x = self.f1.keypoints[:, 0]
-        w = max(float(self.f1.image_size[0]), float(x.max()) + 1 if n1 else 1.0)
-        g = np.clip((x / w * self.c.num_groups).astype(np.int64), 0, self.c.num_groups - 1)
-        if self.f1.responses is not None and np.any(self.f1.responses != self.f1.responses[0]):
-            key = -self.f1.responses.astype(np.float32)
+        w = max(float(self.f1.image_size[0]), float(x.max()) + 1)
+        r = self.f1.responses
+        if r is not None and np.any(r != r[0]):
+            key = -r.astype(np.float32)
         else:
             key = np.random.default_rng(self.c.seed).random(n1, np.float32)
-        by_key = _argsort_f32(key)
-        # stable counting sort by group keeps the key order inside each group
-        order_g, offsets = kernels.counting_order(g[by_key], self.c.num_groups)
-        order_g = by_key[order_g]
-        within = np.empty(n1, np.int64)
-        within[order_g] = np.arange(n1) - np.repeat(offsets[:-1], np.diff(offsets))  # rank inside the group
-        # round-robin: rank within group, then group (a stable sort of within * G + g, done by counting)
-        rr, _ = kernels.counting_order(within * self.c.num_groups + g, (int(within.max()) + 1) * self.c.num_groups)
-        return rr
+        return draw_order(x, w, self.c.num_groups, key)
 
-    def select(self, queries, i1, s1, s2, ncand):
-        """Ratio / single-candidate / max-distance selection; returns accepted (q, j, dist, single) arrays."""
+    def progressive_phase(self, order: np.ndarray, got: _Collected) -> tuple[GuidanceModels | None, np.ndarray]:
+        """Steps 2-4 (§III-A): mini-batches, unguided until the first models, guided after; refit the models after
+        every ``update_every`` new correspondences, ``num_updates`` times. Returns the last models and the queries
+        left for the final pass."""
         c = self.c
-        dist1 = s1 if self.binary else np.sqrt(s1)
-        dist2 = s2 if self.binary else np.sqrt(s2)
-        keep = i1 >= 0
-        single = keep & (ncand == 1)
-        if c.ratio is not None:
-            keep &= (dist1 < np.float32(c.ratio) * dist2) | single
-        if c.single_candidate == "reject":
-            keep &= ~single
-        if c.max_distance is not None:
-            keep &= dist1 <= c.max_distance
-        return queries[keep], i1[keep], dist1[keep].astype(np.float32), single[keep]
+        models: GuidanceModels | None = None
+        since = total = ptr = 0
+        with contextlib.ExitStack() as stack:  # closes the unguided-phase searcher (restores BLAS threads)
+            dense = None
+            while ptr < len(order) and len(self.updates) < c.num_updates:
+                batch = order[ptr: ptr + c.batch_size]
+                ptr += len(batch)
+                t0 = time.perf_counter()
+                if models is not None and models.guided:
+                    acc = self.guided_batch(models, batch)
+                    self.timing["guided_progressive_s"] += time.perf_counter() - t0
+                else:
+                    if dense is None and not self.binary:
+                        dense = stack.enter_context(DenseKnn2(self.d2))
+                    acc = self.unguided_batch(batch, dense)
+                    self.timing["initial_bf_s"] += time.perf_counter() - t0
+                got.add(acc, len(self.updates))
+                since += len(acc.q)
+                total += len(acc.q)
+                if since >= c.update_every and total >= c.min_model_matches:
+                    since = 0
+                    models = self.fit_models(*got.pairs_so_far())
+        if len(self.updates) < c.num_updates and len(self.d1):
+            self.fallback("updates", f"only {len(self.updates)} of {c.num_updates} model updates: "
+                          f"{total} correspondences from all {len(self.d1)} features (need {c.update_every} per update)")
+        return models, order[ptr:]
 
-    def bf_batch(self, queries, dense: "DenseKnn2 | None" = None):
-        """Exact 2-NN of ``queries`` over all of image 2 (``dense``: the progressive phase's batch searcher)."""
+    def unguided_batch(self, queries: np.ndarray, dense: "DenseKnn2 | None" = None) -> _Accepted:
+        """Step 2: exact 2-NN of ``queries`` over all of image 2 (``dense``: the progressive phase's batch searcher)."""
         if dense is not None and not self.binary:
             i1, s1, _i2, s2 = dense.query(self.d1[queries])  # squared distances
         else:
@@ -358,20 +443,127 @@ class _Run:
         self.ncand.append(nc)
         return self.select(queries, i1, s1, s2, nc)
 
-    def regions(self, m: _Models, queries):
-        """:func:`search_regions` of ``queries`` under models ``m`` (no side effects)."""
-        return search_regions(m.pts1a[queries], m.so, m.info.get("F_aligned"), m.info.get("inlier_x1_range"),
+    def select(self, queries, i1, s1, s2, ncand) -> _Accepted:
+        """Ratio / single-candidate / max-distance tests on 2-NN results (``s1, s2``: squared L2 or Hamming)."""
+        c = self.c
+        dist1 = s1 if self.binary else np.sqrt(s1)
+        dist2 = s2 if self.binary else np.sqrt(s2)
+        keep = i1 >= 0
+        single = keep & (ncand == 1)
+        if c.ratio is not None:
+            keep &= (dist1 < np.float32(c.ratio) * dist2) | single
+        if c.single_candidate == "reject":
+            keep &= ~single
+        if c.max_distance is not None:
+            keep &= dist1 <= c.max_distance
+        return _Accepted(queries[keep], i1[keep], dist1[keep].astype(np.float32), single[keep])
+
+    # ------------------------------------------------------------------------------------------ step 3: models
+    def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray) -> GuidanceModels:
+        """Step 3 (§III-B..E): refit F, the alignment and the spatial-order model on all correspondences so far."""
+        t0 = time.perf_counter()
+        k1, k2 = self.f1.keypoints, self.f2.keypoints
+        p1, p2 = k1[acc_i], k2[acc_j]
+        fr = self.fit_fundamental(p1, p2) if (self.mode.use_epi or self.mode.use_ia) else None
+        F, inl = (fr.F, np.asarray(fr.inliers, bool)) if fr is not None else (None, None)
+        al = self.fit_alignment(F, p1[inl], p2[inl]) if self.mode.use_ia and F is not None else None
+        H1, H2 = (np.asarray(al.H1, float), np.asarray(al.H2, float)) if al is not None else (np.eye(3), np.eye(3))
+        H1, H2, pts1a, pts2a = self.aligned_points(H1, H2)
+        F_aligned = x1_range = None
+        if F is not None:
+            from .epipolar import transform_fundamental
+
+            F_aligned = transform_fundamental(F, H1, H2)
+            xin = pts1a[acc_i[inl], 0]
+            x1_range = (float(xin.min()), float(xin.max()))
+        so_fit = self.fit_spatial_order(pts1a, pts2a, acc_i, acc_j, inl) if self.mode.use_so else None
+        so = so_fit if so_fit is not None and so_fit.usable else None
+        foc = al.focal if al is not None else None
+        self.updates.append(ModelUpdate(
+            update=len(self.updates) + 1, num_correspondences=int(len(acc_i)),
+            F_inliers=int(fr.num_inliers) if fr is not None else None,
+            focal=(float(foc.f1), float(foc.f2)) if foc is not None else None,
+            focal_fallback=(bool(foc.fallback1), bool(foc.fallback2)) if foc is not None else None,
+            roll_deg=float(al.roll_deg) if al is not None else None, H2=H2 if al is not None else None,
+            alignment_scale=None if np.allclose(H2, np.eye(3)) else _local_scale_range(H2, k2),
+            so_usable=bool(so_fit.usable) if so_fit is not None else None,
+            n_good=float(so_fit.n_good) if so_fit is not None else None,
+            k_hat=float(so_fit.k_hat) if so_fit is not None else None,
+            window1_x=tuple(map(float, so_fit.window1_x)) if so_fit is not None else None,
+            window2_x=tuple(map(float, so_fit.window2_x)) if so_fit is not None else None))
+        self.strip_cache = {}
+        self.timing["model_fit_s"] += time.perf_counter() - t0
+        return GuidanceModels(F, F_aligned, x1_range, H1, H2, so, pts1a, pts2a, float(self.c.band_px),
                               self.c.outside_window)
 
-    def strips(self, m: _Models, lines: np.ndarray, axis: int):
-        """Strip index of the aligned image-2 points for lines mostly along ``axis`` (0: horizontal-ish).
+    def fit_fundamental(self, p1, p2):
+        """§III-D: F by OpenCV USAC (``ransac_method``): the :class:`~guidedmatch.epipolar.FundamentalResult`, or
+        None when it fails (reported)."""
+        from . import epipolar
+
+        c = self.c
+        fr = epipolar.estimate_fundamental(p1, p2, method=c.ransac_method, threshold=c.ransac_threshold, seed=c.seed)
+        if fr:
+            return fr
+        self.fallback("fundamental", f"F estimation failed: {fr.reason}; "
+                      + ("spatial order only" if self.mode.use_so else "no epipolar guidance"))
+        return None
+
+    def fit_alignment(self, F, p1_in, p2_in):
+        """§III-E: the alignment (``H1``, ``H2``, Bougnoux focal, roll) from F and its inliers for the ``alignment``
+        approach, or None when it fails (reported; the run then matches in original coordinates)."""
+        from . import alignment
+
+        al = alignment.align_from_fundamental(F, p1_in, p2_in, self.f1.image_size, self.f2.image_size,
+                                              approach=self.c.alignment)
+        if not al:
+            self.fallback("alignment", f"alignment failed: {al.reason}; matching in original coordinates")
+            return None
+        foc = al.focal
+        for k, (fb, why) in enumerate(((foc.fallback1, foc.reason1), (foc.fallback2, foc.reason2)), 1):
+            if fb:
+                self.fallback(f"focal{k}", f"Bougnoux focal of image {k} unusable ({why}); f = w + h used")
+        return al
+
+    def aligned_points(self, H1, H2):
+        """Keypoints in the aligned frame; identity (reported) when a homography sends a keypoint to infinity."""
+        from .alignment import apply_homography
+
+        k1, k2 = self.f1.keypoints, self.f2.keypoints
+        pts1a = k1 if np.allclose(H1, np.eye(3)) else apply_homography(H1, k1)
+        pts2a = k2 if np.allclose(H2, np.eye(3)) else apply_homography(H2, k2)
+        if not (np.all(np.isfinite(pts1a)) and np.all(np.isfinite(pts2a))):
+            self.fallback("alignment", "alignment homography sends keypoints to infinity; matching in original coordinates")
+            return np.eye(3), np.eye(3), k1, k2
+        return H1, H2, pts1a, pts2a
+
+    def fit_spatial_order(self, pts1a, pts2a, acc_i, acc_j, likely_correct):
+        """§III-B, §III-C: the spatial-order model on aligned x (``likely_correct``: the F inliers, which measure its
+        order noise); an unusable model is reported (and not used)."""
+        from . import spatial_order
+
+        c = self.c
+        so = spatial_order.fit_spatial_order(
+            pts1a[acc_i, 0], pts2a[acc_j, 0], spatial_order.SpatialOrderConfig(threshold=c.so_threshold, overlap=c.so_overlap),
+            y1=pts1a[acc_i, 1], y2=pts2a[acc_j, 1], likely_correct=likely_correct)
+        if not so.usable:
+            self.fallback("spatial_order", f"spatial-order model unusable ({so.reason}); "
+                          + ("epipolar band only" if likely_correct is not None else "unguided"))
+        return so
+
+    # ------------------------------------------------------------------------------------ steps 4-5: guided
+    def strips(self, m: GuidanceModels, lines: np.ndarray, axis: int) -> kernels.StripIndex:
+        """Strip index of the aligned image-2 points for lines mostly along ``axis`` (0: horizontal-ish), built on
+        first use under the current models.
 
         Strip width ``w = sqrt(6 / (rho * s))`` (clipped to [4 band, 256] px) balances the per-strip cost (a visit,
         a loop exit) against the points scanned outside the band in each strip (``rho * s * w`` per unit length;
         ``rho`` = image-2 points per px² of their bounding box, ``s`` = median |slope| of the lines against the
         strip direction); the constant 6 is from Herz-Jesus 0002/0003 (flat optimum 96-192 px at s = 0.07).
-        Cells along the strip are band/2 high.
+        Cells along the strip are band/2 high. Speed only: the candidates are the exact region either way.
         """
+        if axis in self.strip_cache:
+            return self.strip_cache[axis]
         band = float(self.c.band_px)
         if self.c.strip_px:
             w = float(self.c.strip_px)
@@ -383,10 +575,13 @@ class _Run:
             rho = len(x) / max(float(area), 1.0)
             s = float(np.median(np.abs(lines[:, axis]) / np.maximum(np.abs(lines[:, 1 - axis]), 1e-12)))
             w = float(np.clip(np.sqrt(6.0 / max(rho * max(s, 1e-3), 1e-12)), 4.0 * band, 256.0))
-        return kernels.build_strips(m.pts2a, max(w, 1e-3), axis, max(band / 2.0, 0.5))
+        self.strip_cache[axis] = kernels.build_strips(m.pts2a, max(w, 1e-3), axis, max(band / 2.0, 0.5))
+        return self.strip_cache[axis]
 
-    def guided_batch(self, m: _Models, queries):
-        keep, lo, hi, lines, rescued = self.regions(m, queries)
+    def guided_batch(self, m: GuidanceModels, queries: np.ndarray) -> _Accepted:
+        """Steps 4-5: best two candidates of each query in its search region (:func:`search_regions`), one call of
+        the Numba kernel; features outside ω* (not rescued) are dropped unmatched."""
+        keep, lo, hi, lines, rescued = m.regions(queries)
         self.dropped_outside_overlap += int((~keep).sum())
         self.band_only += int(rescued.sum())
         if lines is None:
@@ -395,16 +590,13 @@ class _Run:
         lines, lo, hi = lines[keep], lo[keep], hi[keep]
         # process queries in image-1 position order (32 px cells row by row: the point order of a row-strip index):
         # neighbours share candidates, which stay in cache; the order changes nothing but speed
-        o = kernels.build_strips(m.pts1a[q], 32.0, axis=1, cell=32.0)[7]
+        o = kernels.build_strips(m.pts1a[q], 32.0, axis=1, cell=32.0).items
         use_band = m.F is not None
         vertical = np.abs(lines[:, 0]) > np.abs(lines[:, 1]) if use_band else np.zeros(len(q), bool)
-        if m.cols is None:
-            m.cols = self.strips(m, lines[~vertical], 0)
-        if m.rows is None and vertical.any():
-            m.rows = self.strips(m, lines[vertical], 1)
-        rows = m.rows if m.rows is not None else self.no_strips
+        cols = self.strips(m, lines[~vertical], 0)
+        rows = self.strips(m, lines[vertical], 1) if (1 in self.strip_cache or vertical.any()) else self.no_strips
         i1, s1, _i2, s2, nc = kernels.guided_top2(q[o], self.kdesc1, self.kdesc2, lines[o], use_band,
-                                                  float(self.c.band_px), lo[o], hi[o], m.cols, rows)
+                                                  float(self.c.band_px), lo[o], hi[o], cols, rows)
         inv = np.empty_like(o)
         inv[o] = np.arange(len(o))
         i1, s1, s2, nc = i1[inv], s1[inv], s2[inv], nc[inv]
@@ -413,197 +605,102 @@ class _Run:
         self.no_region += int((nc == 0).sum())
         return self.select(q, i1, s1, s2, nc)
 
-    # ------------------------------------------------------------------ models
-    def fit(self, acc_i, acc_j) -> _Models:
-        """Refit F, the alignment and the SO model on all correspondences so far (§III-B..E)."""
-        t0 = time.perf_counter()
-        c = self.c
-        m = _Models()
-        k1, k2 = self.f1.keypoints, self.f2.keypoints
-        p1, p2 = k1[acc_i], k2[acc_j]
-        info = dict(update=len(self.updates) + 1, num_correspondences=int(len(acc_i)))
-        inl = None
-        if self.use_epi or self.use_ia:
-            from .epipolar import estimate_fundamental
-
-            fr = estimate_fundamental(p1, p2, method=c.ransac_method, threshold=c.ransac_threshold, seed=c.seed)
-            if fr:
-                m.F = fr.F
-                info["F_inliers"] = int(fr.num_inliers)
-                inl = np.asarray(fr.inliers, bool)
-            else:
-                self.fallback("fundamental", f"F estimation failed: {fr.reason}; "
-                              + ("spatial order only" if self.use_so else "no epipolar guidance"))
-                inl = None
-            if self.use_ia and m.F is not None:
-                from .alignment import align_from_fundamental
-
-                al = align_from_fundamental(m.F, p1[inl], p2[inl], self.f1.image_size, self.f2.image_size, approach=c.alignment)
-                if al:
-                    m.H1, m.H2 = np.asarray(al.H1, float), np.asarray(al.H2, float)
-                    foc = al.focal
-                    info.update(focal=(float(foc.f1), float(foc.f2)), focal_fallback=(bool(foc.fallback1), bool(foc.fallback2)),
-                                roll_deg=float(getattr(al, "roll_deg", np.nan)), H2=m.H2.tolist())
-                    for k, (fb, why) in enumerate(((foc.fallback1, foc.reason1), (foc.fallback2, foc.reason2)), 1):
-                        if fb:
-                            self.fallback(f"focal{k}", f"Bougnoux focal of image {k} unusable ({why}); f = w + h used")
-                else:
-                    self.fallback("alignment", f"alignment failed: {al.reason}; matching in original coordinates")
-        from .alignment import apply_homography
-
-        m.pts1a = k1 if np.allclose(m.H1, np.eye(3)) else apply_homography(m.H1, k1)
-        m.pts2a = k2 if np.allclose(m.H2, np.eye(3)) else apply_homography(m.H2, k2)
-        if not (np.all(np.isfinite(m.pts1a)) and np.all(np.isfinite(m.pts2a))):
-            self.fallback("alignment", "alignment homography sends keypoints to infinity; matching in original coordinates")
-            m.H1, m.H2, m.pts1a, m.pts2a = np.eye(3), np.eye(3), k1, k2
-        if m.F is not None:
-            from .epipolar import transform_fundamental
-
-            info["F_aligned"] = transform_fundamental(m.F, m.H1, m.H2)
-            xin = m.pts1a[acc_i[inl], 0]
-            info["inlier_x1_range"] = (float(xin.min()), float(xin.max()))
-        if self.use_so:
-            from .spatial_order import SpatialOrderConfig, fit_spatial_order
-
-            so = fit_spatial_order(m.pts1a[acc_i, 0], m.pts2a[acc_j, 0],
-                                   SpatialOrderConfig(threshold=c.so_threshold, overlap=c.so_overlap, probability=c.so_probability),
-                                   y1=m.pts1a[acc_i, 1], y2=m.pts2a[acc_j, 1],
-                                   likely_correct=inl if m.F is not None else None)
-            info.update(so_usable=bool(so.usable), n_good=float(so.n_good), k_hat=float(so.k_hat),
-                        window1_x=tuple(map(float, so.window1_x)), window2_x=tuple(map(float, so.window2_x)))
-            if so.usable:
-                m.so = so
-            else:
-                self.fallback("spatial_order", f"spatial-order model unusable ({so.reason}); "
-                              + ("epipolar band only" if m.F is not None else "unguided"))
-        m.info = info
-        if m.H2 is not None and not np.allclose(m.H2, np.eye(3)):
-            info["alignment_scale"] = _local_scale_range(m.H2, k2)
-        self.updates.append({k: v for k, v in info.items() if k != "F_aligned"})
-        self.timing["model_fit_s"] += time.perf_counter() - t0
-        return m
-
-    # ------------------------------------------------------------------ main
-    def run(self) -> MatchResult:
-        t_start = time.perf_counter()
-        c = self.c
-        n1, n2 = len(self.d1), len(self.d2)
-        order = self.draw_order() if n1 else np.zeros(0, np.int64)
-        acc_q, acc_j, acc_d, acc_single, acc_phase = [], [], [], [], []
-        models = _Models()
-        since = 0
-        total = 0
-        ptr = 0
-        if n2 == 0:
-            order = order[:0]
-        dense = None
-        with contextlib.ExitStack() as stack:  # closes the unguided-phase searcher (restores BLAS threads)
-            while ptr < len(order) and len(self.updates) < c.num_updates:
-                batch = order[ptr: ptr + c.batch_size]
-                ptr += len(batch)
-                t0 = time.perf_counter()
-                if models.guided:
-                    q, j, d, s = self.guided_batch(models, batch)
-                    self.timing["guided_progressive_s"] += time.perf_counter() - t0
-                else:
-                    if dense is None and not self.binary:
-                        dense = stack.enter_context(DenseKnn2(self.d2))
-                    q, j, d, s = self.bf_batch(batch, dense)
-                    self.timing["initial_bf_s"] += time.perf_counter() - t0
-                acc_q.append(q); acc_j.append(j); acc_d.append(d); acc_single.append(s)
-                acc_phase.append(np.full(len(q), len(self.updates), np.int64))
-                since += len(q)
-                total += len(q)
-                if since >= c.update_every and total >= c.min_model_matches:
-                    since = 0
-                    models = self.fit(np.concatenate(acc_q), np.concatenate(acc_j))
-        if len(self.updates) < c.num_updates and n1:
-            self.fallback("updates", f"only {len(self.updates)} of {c.num_updates} model updates: "
-                          f"{total} correspondences from all {n1} features (need {c.update_every} per update)")
-        rest = order[ptr:]
+    def final_pass(self, models: GuidanceModels | None, rest: np.ndarray, got: _Collected) -> None:
+        """Step 5: every remaining image-1 feature in one vectorized call (unguided when no model was fitted)."""
         if len(rest):
             t0 = time.perf_counter()
-            if models.guided:
-                q, j, d, s = self.guided_batch(models, rest)
-            else:
-                q, j, d, s = self.bf_batch(rest)
+            acc = self.guided_batch(models, rest) if models is not None and models.guided else self.unguided_batch(rest)
             self.timing["final_pass_s"] += time.perf_counter() - t0
-            acc_q.append(q); acc_j.append(j); acc_d.append(d); acc_single.append(s)
-            acc_phase.append(np.full(len(q), len(self.updates), np.int64))
-        if models.guided:
-            self.guidance = GuidanceModels(models.F, models.H1, models.H2, models.so, models.pts1a, models.pts2a,
-                                           float(c.band_px), np.asarray(rest, np.int64), models.info.get("F_aligned"),
-                                           models.info.get("inlier_x1_range"), c.outside_window)
-        cat = lambda xs, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(0, dt)  # noqa: E731
-        q, j, d = cat(acc_q, np.int64), cat(acc_j, np.int64), cat(acc_d, np.float32)
-        single, phase = cat(acc_single, bool), cat(acc_phase, np.int64)
-        flags = dict(phase=phase, single_candidate=single)
-        # -- in-band flag and re-check against the final models
+            got.add(acc, len(self.updates))
+        if models is not None and models.guided:
+            self.guidance = dataclasses.replace(models, final_queries=np.asarray(rest, np.int64))
+
+    # ------------------------------------------------------------------------------------ steps 6-7: filters
+    def recheck(self, models: GuidanceModels | None, q, j, d, flags: dict):
+        """Step 6 (beyond the paper; §IV-C suggests it): the in-band flag of every match under the final models, and,
+        with ``recheck``, drop matches made before the final models that lie outside the final search region."""
         t0 = time.perf_counter()
+        c = self.c
         in_band = np.ones(len(q), bool)
         in_region = np.ones(len(q), bool)
-        if models.guided and len(q):
-            keep, lo, hi, lines, _ = self.regions(models, q)
+        guided = models is not None and models.guided
+        if guided and len(q):
+            keep, lo, hi, lines, _ = models.regions(q)
             xa = models.pts2a[j]
             in_region = keep & (xa[:, 0] >= lo) & (xa[:, 0] <= hi)
             if models.F is not None:
                 in_band = np.abs(np.sum(lines[:, :2] * xa, axis=1) + lines[:, 2]) <= c.band_px
                 in_region &= in_band
-        dropped_recheck = 0
-        if c.recheck and models.guided:
-            early = phase < len(self.updates)
-            drop = early & ~in_region
-            dropped_recheck = int(drop.sum())
+        flags = dict(flags, in_band=in_band)
+        dropped = 0
+        if c.recheck and guided:
+            drop = (flags["phase"] < len(self.updates)) & ~in_region
+            dropped = int(drop.sum())
             sel = ~drop
-            q, j, d, in_band = q[sel], j[sel], d[sel], in_band[sel]
-            flags = {k: v[sel] for k, v in flags.items()}
-        self.timing["recheck_s"] = time.perf_counter() - t0
-        flags["in_band"] = in_band
-        # -- one image-1 feature per image-2 feature (one_to_one, or mutual in a guided mode)
-        if (c.one_to_one or c.mutual) and len(q):
-            o = np.lexsort((q, d, j))
-            first = np.r_[True, np.diff(j[o]) != 0]
-            sel = np.sort(o[first])
             q, j, d = q[sel], j[sel], d[sel]
             flags = {k: v[sel] for k, v in flags.items()}
-        o = np.argsort(q, kind="stable")
-        q, j, d = q[o], j[o], d[o]
-        flags = {k: v[o] for k, v in flags.items()}
-        # -- per-match spatial-order probability within the final match set (Talker Eq. 12)
+        self.timing["recheck_s"] = time.perf_counter() - t0
+        return q, j, d, flags, dropped
+
+    def filters(self, q, j, d, flags: dict):
+        """Step 7: :func:`one_to_one` (``one_to_one``) and the full :func:`mutual_check` (``mutual``; its reverse
+        search is counted in ``comparisons``)."""
         t0 = time.perf_counter()
-        if self.use_so and len(q) >= 2:
-            try:
-                from .spatial_order import match_probabilities
+        n0 = len(q)
+        if self.c.one_to_one_in(self.mode) and len(q):
+            sel = one_to_one(q, j, d)
+            q, j, d = q[sel], j[sel], d[sel]
+            flags = {k: v[sel] for k, v in flags.items()}
+        n1 = len(q)
+        self.mutual_comparisons = 0
+        if self.c.mutual and len(q):
+            sel, self.mutual_comparisons = mutual_check(self.d1, self.d2, q, j)
+            q, j, d = q[sel], j[sel], d[sel]
+            flags = {k: v[sel] for k, v in flags.items()}
+        self.timing["filter_s"] = time.perf_counter() - t0
+        return q, j, d, flags, n0 - n1, n1 - len(q)
 
-                pa1 = models.pts1a if models.pts1a is not None else self.f1.keypoints
-                pa2 = models.pts2a if models.pts2a is not None else self.f2.keypoints
-                # probability of each final match within the final match set (Talker Eq. 12); the matches already lie
-                # inside the model's overlap window, so no new window search (overlap="none"), no gap table
-                from .spatial_order import SpatialOrderConfig
+    # ------------------------------------------------------------------------------------ step 8: result
+    def so_probabilities(self, models: GuidanceModels | None, q, j) -> np.ndarray:
+        """Per-match spatial-order probability within the final match set (Talker Eq. 12), float32; NaN when not
+        computed (mode without SO, < 2 matches) or when the model of the final set is unusable (reported)."""
+        t0 = time.perf_counter()
+        out = np.full(len(q), np.nan, np.float32)
+        if self.mode.use_so and len(q) >= 2:
+            from . import spatial_order
 
-                flags["so_prob"] = np.asarray(match_probabilities(pa1[q, 0], pa2[j, 0], SpatialOrderConfig(overlap="none")), np.float32)
-            except Exception as exc:  # reported, not hidden
-                self.fallback("so_prob", f"per-match probabilities not computed: {exc}")
+            pa1 = models.pts1a if models is not None else self.f1.keypoints
+            pa2 = models.pts2a if models is not None else self.f2.keypoints
+            # the matches already lie inside the model's overlap window: no new window search, no gap table
+            so = spatial_order.fit_spatial_order(pa1[q, 0], pa2[j, 0],
+                                                 spatial_order.SpatialOrderConfig(overlap="none", gap_table=False))
+            if so.usable:
+                out = np.asarray(so.probabilities, np.float32)
+            else:
+                self.fallback("so_prob", f"per-match probabilities not computed: spatial-order model of the final "
+                              f"matches unusable ({so.reason}); so_prob = NaN")
         self.timing["so_prob_s"] = time.perf_counter() - t0
+        return out
+
+    def result(self, t_start, models, q, j, d, flags, dropped_recheck, dropped_o2o, dropped_mutual) -> MatchResult:
+        """Step 8: the MatchResult with its :class:`~guidedmatch.results.MatchStats` (every count of the run)."""
+        n1, n2 = len(self.d1), len(self.d2)
+        nphase = len(self.updates) + 1
+        phase_comparisons = tuple(self.phase_comparisons.get(k, 0) for k in range(nphase))
+        stats = MatchStats(
+            method=self.mode.name, comparisons=int(sum(phase_comparisons)) + self.mutual_comparisons,
+            time_s=time.perf_counter() - t_start, num_features=(n1, n2), metric="hamming" if self.binary else "l2",
+            byte_exact_kernel=self.byte_exact, timing=PhaseTimes(**self.timing), updates=tuple(self.updates),
+            candidates_per_query=CandidateStats.of(np.concatenate(self.ncand) if self.ncand else np.zeros(0, np.int64)),
+            queries_matched_against=int(sum(len(x) for x in self.ncand)),
+            dropped_outside_overlap=self.dropped_outside_overlap, queries_without_candidates=self.no_region,
+            band_only_outside_window=self.band_only, dropped_by_recheck=dropped_recheck,
+            dropped_by_one_to_one=dropped_o2o, dropped_by_mutual=dropped_mutual,
+            F=None if models is None or models.F is None else np.asarray(models.F),
+            alignment_H2=None if models is None or np.allclose(models.H2, np.eye(3)) else np.asarray(models.H2),
+            phase_queries=tuple(self.phase_queries.get(k, 0) for k in range(nphase)),
+            phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c)
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
-        nc = np.concatenate(self.ncand) if self.ncand else np.zeros(0, np.int64)
-        last = self.updates[-1] if self.updates else {}
-        comparisons = sum(self.phase_comparisons.values())
-        stats = dict(
-            method=self.mode, mode=self.mode, comparisons=int(comparisons), num_features=(n1, n2),
-            bf_comparisons=int(n1) * int(n2), comparison_ratio=comparisons / max(1, n1 * n2),
-            metric="hamming" if self.binary else "l2", byte_exact_kernel=self.byte_exact, time_s=time.perf_counter() - t_start, timing=self.timing,
-            num_model_updates=len(self.updates), updates=self.updates, candidates_per_query=_percentiles(nc),
-            queries_matched_against=int(len(nc)), dropped_outside_overlap=self.dropped_outside_overlap,
-            queries_without_candidates=self.no_region, dropped_by_recheck=dropped_recheck,
-            band_only_outside_window=self.band_only,
-            n_good=last.get("n_good"), omega_x=(last.get("window1_x"), last.get("window2_x")),
-            F=None if models.F is None else models.F.tolist(), F_inliers=last.get("F_inliers"),
-            focal=last.get("focal"), focal_fallback=last.get("focal_fallback"),
-            alignment_H2=None if np.allclose(models.H2, np.eye(3)) else models.H2.tolist(),
-            phase_queries=self.phase_queries, phase_comparisons=self.phase_comparisons,
-            fallbacks=self.fallbacks, config=dataclasses.asdict(self.c),
-        )
         return MatchResult(pairs, d, stats, flags)
 
 

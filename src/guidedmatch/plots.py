@@ -23,10 +23,16 @@ def _plt():
 
 def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
     """``fig.savefig`` to a temp file next to ``path`` then ``os.replace`` (no partial PNGs)."""
+    from .errors import OutputError
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=path.suffix or ".png", dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=path.suffix or ".png", dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        _plt().close(fig)
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
     try:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
         from .features import publish
@@ -83,21 +89,90 @@ def motion_field(path, image1, pts1, pts2, correct=None, title: str = "") -> Pat
 
 
 def motion_field_panels(path, image1, panels: list[dict], ncols: int = 3, suptitle: str = "") -> Path:
-    """Several motion fields side by side; each panel dict has ``pts1, pts2, correct, title``."""
+    """Several motion fields side by side; each panel dict has ``pts1, pts2, correct, title``.
+
+    Laid out with Matplotlib's constrained layout (titles wrapped to the panel width), so titles of one row never
+    overlap the panels above and the figure title stays clear of the first row.
+    """
+    import textwrap
+
     plt = _plt()
     n = len(panels)
     ncols = min(ncols, n)
     nrows = int(np.ceil(n / ncols))
     h, w = image1.shape[:2]
-    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 5.2 * nrows * h / w + 0.4), squeeze=False)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 5.2 * nrows * h / w + 0.8 * nrows + 0.6),
+                             squeeze=False, layout="constrained")
     for ax, p in zip(axes.ravel(), panels):
         draw_motion_field(ax, image1, np.asarray(p["pts1"]).reshape(-1, 2), np.asarray(p["pts2"]).reshape(-1, 2),
-                          p.get("correct"), p.get("title", ""))
+                          p.get("correct"), textwrap.fill(p.get("title", ""), 60))
     for ax in axes.ravel()[n:]:
         ax.axis("off")
     if suptitle:
-        fig.suptitle(suptitle, fontsize=11)
-    fig.tight_layout()
+        fig.suptitle(textwrap.fill(suptitle, 30 * ncols), fontsize=11)
+    return save_figure(fig, path)
+
+
+def match_pair(path, image1, image2, pts1, pts2, inliers=None, title: str = "", max_lines: int = 250,
+               rng: np.random.Generator | None = None) -> Path:
+    """Both images side by side with their matches, readable at any match count.
+
+    Every match is a dot in both images (green = inlier of the two-view verdict, red = outlier; small and
+    translucent, so thousands of matches show as a density); lines join a seeded random subsample of at most
+    ``max_lines`` inliers and ``max_lines`` outliers. The legend gives the counts and how many lines are drawn.
+
+    Args:
+        image1, image2: grey or BGR images; pts1, pts2: ``(M, 2)`` matched pixel coordinates.
+        inliers: ``(M,) bool`` (the verdict's inlier mask); None = all unverified (drawn as outliers).
+    """
+    import textwrap
+
+    from matplotlib.collections import LineCollection
+    from matplotlib.lines import Line2D
+
+    plt = _plt()
+    rng = rng or np.random.default_rng(0)
+    pts1 = np.asarray(pts1, np.float64).reshape(-1, 2)
+    pts2 = np.asarray(pts2, np.float64).reshape(-1, 2)
+    m = len(pts1)
+    inl = np.zeros(m, bool) if inliers is None else np.asarray(inliers, bool).reshape(-1)
+
+    def rgb(img):
+        img = np.asarray(img)
+        return img if img.ndim == 2 else img[:, :, ::-1]
+
+    h1, w1 = image1.shape[:2]
+    h2, w2 = image2.shape[:2]
+    H = max(h1, h2)
+    canvas_w = w1 + w2 + max(10, (w1 + w2) // 100)
+    off = canvas_w - w2
+    fig, ax = plt.subplots(figsize=(14, 14 * H / canvas_w + 0.9), layout="constrained")
+    grey = image1.ndim == 2 and image2.ndim == 2
+    kw = dict(cmap="gray", vmin=0, vmax=255) if grey else {}
+    ax.imshow(rgb(image1), extent=(-0.5, w1 - 0.5, h1 - 0.5, -0.5), **kw)
+    ax.imshow(rgb(image2), extent=(off - 0.5, off + w2 - 0.5, h2 - 0.5, -0.5), **kw)
+    dot = max(0.5, min(6.0, 4000.0 / max(m, 1)))
+    handles = []
+    for mask, colour, label in ((~inl, (0.95, 0.1, 0.1), "outlier"), (inl, (0.1, 0.85, 0.1), "inlier")):
+        idx = np.flatnonzero(mask)
+        if len(idx) == 0:
+            continue
+        lines = np.sort(rng.choice(idx, max_lines, replace=False)) if len(idx) > max_lines else idx
+        segs = np.stack([pts1[lines], pts2[lines] + [off, 0]], axis=1)
+        ax.add_collection(LineCollection(segs, colors=[(*colour, 0.55)], linewidths=0.6))
+        for p, dx in ((pts1[idx], 0), (pts2[idx], off)):
+            ax.scatter(p[:, 0] + dx, p[:, 1], s=dot, color=colour, alpha=0.6, linewidths=0)
+        shown = f", {len(lines)} lines drawn" if len(lines) < len(idx) else ""
+        handles.append(Line2D([], [], color=colour, marker="o", lw=1, label=f"{label}s: {len(idx)}{shown}"))
+    ax.set_xlim(-0.5, canvas_w - 0.5)
+    ax.set_ylim(H - 0.5, -0.5)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if handles:
+        ax.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=len(handles), fontsize=9,
+                  frameon=False)
+    full = f"{title} (image 1 left, image 2 right)" if title else "image 1 left, image 2 right"
+    fig.suptitle(textwrap.fill(full, 140), fontsize=11)
     return save_figure(fig, path)
 
 
@@ -127,7 +202,7 @@ def search_regions(path, image1, image2, f1, f2, result, models=None, num_sample
     gy, gx = np.mgrid[0:h2:step, 0:w2:step]
     P = np.c_[gx.ravel(), gy.ravel(), np.ones(gx.size)] @ models.H2.T
     Pa = P[:, :2] / P[:, 2:3]
-    keep, lo, hi, lines = models.regions(np.array(picks))
+    keep, lo, hi, lines, _ = models.regions(np.array(picks))
     fig, axes = plt.subplots(len(picks), 2, figsize=(10, 3.6 * len(picks)), squeeze=False)
     for r, q in enumerate(picks):
         a0, a1 = axes[r]

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-OURS = ("bf", "epi", "so", "so+epi", "so+epi+ia")
+from ..config import MODES as OURS  # our modes, in the one order every table uses
 PAPER_MODES = {"bf": "BF", "so": "SO", "so+epi": "SO+EPI", "so+epi+ia": "SO+EPI+IA"}
 LABEL = {"bf": "BF", "bf-1nn": "BF 1-NN (no ratio)", "epi": "EPI", "so": "SO", "so+epi": "SO+EPI",
          "so+epi+ia": "SO+EPI+IA", "opencv_bf": "OpenCV BF", "opencv_flann": "OpenCV FLANN", "faiss_flat": "faiss exact",
@@ -69,10 +69,10 @@ def evaluate_pair(pair, f1, f2, *, repeats=1, peers=(), config=None, rotated=Fal
                  precision=float(ok.mean()) if len(ok) else float("nan"),
                  time_s=float(np.median(times)), times_s=[float(t) for t in times])
         if stats:
-            m.update(model_fit_s=stats.get("timing", {}).get("model_fit_s"),
-                     fallbacks=[f"{f['what']}: {f['reason']}" for f in stats.get("fallbacks", [])],
-                     candidates_p50=(stats.get("candidates_per_query") or {}).get("p50"),
-                     alignment_H2=stats.get("alignment_H2"), roll_deg=(stats.get("updates") or [{}])[-1].get("roll_deg"))
+            m.update(model_fit_s=stats.timing.model_fit_s if stats.timing else None,
+                     fallbacks=[f"{f.what}: {f.reason}" for f in stats.fallbacks],
+                     candidates_p50=stats.candidates_per_query.p50 if stats.candidates_per_query else None,
+                     alignment_H2=stats.alignment_H2, roll_deg=stats.updates[-1].roll_deg if stats.updates else None)
         if real:
             m["ransac_precision"] = ransac_precision(p1, p2, distances)
         row["methods"][key] = m
@@ -83,16 +83,16 @@ def evaluate_pair(pair, f1, f2, *, repeats=1, peers=(), config=None, rotated=Fal
         times, res = [], None
         for _ in range(repeats):
             res = match(f1, f2, mode, config)
-            times.append(res.stats["time_s"])
-        record(mode, res.pairs, times, res.stats["comparisons"], res.stats, res.distances)
+            times.append(res.stats.time_s)
+        record(mode, res.pairs, times, res.stats.comparisons, res.stats, res.distances)
     r = match_bruteforce(f1, f2, ratio=None)
-    record("bf-1nn", r.pairs, [r.stats["time_s"]], r.stats["comparisons"], distances=r.distances)
+    record("bf-1nn", r.pairs, [r.stats.time_s], r.stats.comparisons, distances=r.distances)
     for peer in peers:
         times, out = [], None
         for _ in range(repeats if peer != "opencv_bf" else 1):
             out = run_peer(peer, f1, f2, rotated=rotated)
-            times.append(out.stats["time_s"])
-        record(peer, out.pairs, times, out.stats.get("comparisons"), distances=out.distances)
+            times.append(out.stats.time_s)
+        record(peer, out.pairs, times, out.stats.comparisons, distances=out.distances)
     return row
 
 
@@ -404,40 +404,58 @@ def _warm_up(detector):
     match_bruteforce(f1, f2, ratio=None)
 
 
-def main(args) -> int:
+BENCHMARKS = ("oxford", "synthetic", "real", "alignment", "all")
+
+
+def run_benchmarks(which: str, *, data=None, out="reports", quick: bool = False, repeats: int | None = None,
+                   detector: str = "sift", seed: int = 0) -> Path:
+    """Run the benchmark(s) ``which`` (one of :data:`BENCHMARKS`) and write ``report.md``, ``results.json`` and the
+    figures into ``out``; returns the report's path.
+
+    ``data``: data folder (default ``$GUIDEDMATCH_DATA`` or ``../shared/data``); ``quick``: a few pairs per set;
+    ``repeats``: timing repeats per method (default 1 with ``quick``, else 3). Raises
+    :class:`~guidedmatch.errors.ConfigError` for an unknown benchmark, :class:`~guidedmatch.errors.InputError`
+    when the data is missing and :class:`~guidedmatch.errors.OutputError` when ``out`` cannot be written, before
+    any work.
+    """
     from ..datasets import data_root
+    from ..errors import ConfigError, InputError
+    from ..features import DETECTORS, writable_folder
     from .meta import run_metadata, write_json
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if which not in BENCHMARKS:
+        raise ConfigError(f"unknown benchmark {which!r}; choose one of {', '.join(BENCHMARKS)}")
+    if detector not in DETECTORS:
+        raise ConfigError(f"unknown detector {detector!r}; choose one of {', '.join(DETECTORS)}")
+    parts = ("oxford", "synthetic", "real", "alignment") if which == "all" else (which,)
+    root = data_root(data)
+    if (root is None or not root.is_dir()) and any(w != "alignment" for w in parts):
+        where = "" if root is None else f" ({root} is not a folder)"
+        raise InputError(f"no evaluation data{where}: pass --data DIR or set GUIDEDMATCH_DATA "
+                         "(expects oxford/, pose_pairs/, photos/)")
+    out = writable_folder(out)
     t0 = time.perf_counter()
-    which = ("oxford", "synthetic", "real", "alignment") if args.which == "all" else (args.which,)
-    root = data_root(args.data)
-    if root is None and any(w != "alignment" for w in which):
-        from ..cli import CLIError
-
-        raise CLIError("no evaluation data: pass --data DIR or set GUIDEDMATCH_DATA (expects oxford/, pose_pairs/, photos/)")
-    repeats = args.repeats or (1 if args.quick else 3)
+    repeats = repeats or (1 if quick else 3)
     peers = available_peers()
-    _warm_up(args.detector)
-    results = dict(meta=run_metadata(seed=args.seed), quick=bool(args.quick), repeats=repeats, peers=peers,
-                   detector=args.detector, figures=[])
-    if "oxford" in which:
-        results["oxford"], figs = run_oxford(root, out, args.quick, repeats, args.detector, peers)
+    _warm_up(detector)
+    results = dict(meta=run_metadata(seed=seed), quick=bool(quick), repeats=repeats, peers=peers,
+                   detector=detector, figures=[])
+    if "oxford" in parts:
+        results["oxford"], figs = run_oxford(root, out, quick, repeats, detector, peers)
         results["figures"] += [str(f) for f in figs]
-    if "synthetic" in which:
-        results["synthetic"] = run_synthetic(root, out, args.quick, 1, args.detector, [p for p in peers if p != "opencv_bf"], args.seed)
-    if "real" in which:
-        results["real"], figs = run_real(root, out, args.quick, repeats, args.detector, peers)
+    if "synthetic" in parts:
+        results["synthetic"] = run_synthetic(root, out, quick, 1, detector, [p for p in peers if p != "opencv_bf"], seed)
+    if "real" in parts:
+        results["real"], figs = run_real(root, out, quick, repeats, detector, peers)
         results["figures"] += [str(f) for f in figs]
-    if "alignment" in which:
+    if "alignment" in parts:
         from .alignment_sim import run_alignment_experiment
 
-        n = QUICK["alignment_pairs"] if args.quick else 3000
-        results["alignment"] = run_alignment_experiment(n_pairs=n, out_dir=out / "alignment", seed=args.seed, progress=True)
+        n = QUICK["alignment_pairs"] if quick else 3000
+        results["alignment"] = run_alignment_experiment(n_pairs=n, out_dir=out / "alignment", seed=seed, progress=True)
     results["elapsed_s"] = time.perf_counter() - t0
-    command = "guidedmatch bench " + args.which + (" --quick" if args.quick else "")
+    command = "guidedmatch bench " + which + (" --quick" if quick else "")
     write_json(out / "results.json", results)
     rep = write_report(out, results, command)
     print(f"wrote {rep}, {out / 'results.json'} and {len(results['figures'])} figure(s) in {results['elapsed_s'] / 60:.1f} min")
-    return 0
+    return rep

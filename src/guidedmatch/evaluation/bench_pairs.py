@@ -186,12 +186,21 @@ def _record(res, times, f1, f2, gt, comparisons, extra=None) -> dict:
     return m
 
 
-def _ours_extra(stats: dict) -> dict:
-    ups = stats.get("updates") or []
-    return dict(fallbacks=[f"{f.get('what')}: {f.get('reason')}" for f in stats.get("fallbacks", [])],
-                timing=stats.get("timing"), alignment_scale=stats.get("alignment_scale"),
-                stats_time_s=stats.get("time_s"), num_updates=len(ups),
-                choice=stats.get("choice") or stats.get("strategy"))
+def _field(obj, name, default=None):
+    """``obj[name]`` for dicts, ``getattr`` otherwise (stats and fallbacks are dataclasses or, before, dicts)."""
+    if isinstance(obj, dict):
+        return obj.get(name, default)
+    return getattr(obj, name, default)
+
+
+def _ours_extra(stats) -> dict:
+    """The parts of our matcher's stats kept per pair (fallbacks, phase times, updates, what was chosen)."""
+    details = _field(stats, "details") or {}
+    fallbacks = _field(stats, "fallbacks") or ()
+    return dict(fallbacks=[f"{_field(f, 'what')}: {_field(f, 'reason')}" for f in fallbacks],
+                timing=_field(stats, "timing"), alignment_scale=details.get("alignment_scale", _field(stats, "alignment_scale")),
+                stats_time_s=_field(stats, "time_s"), num_updates=len(_field(stats, "updates") or ()),
+                details={k: v for k, v in details.items() if isinstance(v, (str, int, float, bool, type(None)))})
 
 
 def run_pair(name, f1, f2, gt, *, repeats, config, ivf1, ivf2, prep1=None, prep2=None, angles=None,
@@ -208,14 +217,15 @@ def run_pair(name, f1, f2, gt, *, repeats, config, ivf1, ivf2, prep1=None, prep2
         if mode not in methods:
             continue
         res, times = _timed(lambda: match(a, b, mode, config), repeats)
-        row["methods"][mode] = _record(res, times, f1, f2, gt, res.stats.get("comparisons"), _ours_extra(res.stats))
+        row["methods"][mode] = _record(res, times, f1, f2, gt, _field(res.stats, "comparisons"), _ours_extra(res.stats))
     if "faiss_flat" in methods:
         res, times = _timed(lambda: peers.match_faiss(f1, f2, ratio=0.8), repeats)
-        row["methods"]["faiss_flat"] = _record(res, times, f1, f2, gt, res.stats["comparisons"])
+        row["methods"]["faiss_flat"] = _record(res, times, f1, f2, gt, _field(res.stats, "comparisons"))
     if "faiss_ivf" in methods:
         res, times = _timed(lambda: peers.match_faiss_ivf(f1, f2, ratio=0.8, index1=ivf1, index2=ivf2), repeats)
-        row["methods"]["faiss_ivf"] = _record(res, times, f1, f2, gt, res.stats["comparisons"],
-                                              dict(nlist=res.stats["nlist"], nprobe=res.stats["nprobe"]))
+        d = _field(res.stats, "details") or res.stats
+        row["methods"]["faiss_ivf"] = _record(res, times, f1, f2, gt, _field(res.stats, "comparisons"),
+                                              dict(nlist=d["nlist"], nprobe=d["nprobe"]))
     if "opencv_flann" in methods:
         res, times = _timed(lambda: peers.match_opencv_flann(f1, f2, ratio=0.8, **FLANN), repeats)
         row["methods"]["opencv_flann"] = _record(res, times, f1, f2, gt, None, dict(FLANN))
@@ -442,7 +452,7 @@ def run_oxford(root, *, quick, repeats, config, progress=True) -> list[dict]:
             ok = p.gt.correct(f1.keypoints[res.pairs[:, 0]], f2.keypoints[res.pairs[:, 1]]) if len(res) else np.zeros(0, bool)
             row["methods"][mode] = dict(matches=len(res), true=int(ok.sum()),
                                         precision=float(ok.mean()) if len(ok) else None,
-                                        comparisons=res.stats.get("comparisons"), time_s=float(statistics.median(times)))
+                                        comparisons=_field(res.stats, "comparisons"), time_s=float(statistics.median(times)))
         g, bf = row["methods"]["so+epi+ia"], row["methods"]["bf"]
         row["ok_precision"] = (g["precision"] or 0) >= (bf["precision"] or 0)
         row["ok_true"] = g["true"] >= bf["true"]
@@ -637,12 +647,14 @@ def main(args) -> int:
     if getattr(args, "oxford", False) and root is not None:
         need.append(root / "oxford")
     if root is None or not all(p.exists() for p in need):
-        from ..cli import CLIError
+        from ..errors import InputError
 
-        raise CLIError("no evaluation data for bench pairs: pass --data DIR or set GUIDEDMATCH_DATA (expects "
-                       f"pose_pairs/strecha/{SCENE}/, photos/unsplash/"
-                       f"{', oxford/' if getattr(args, 'oxford', False) else ''})")
-    out = Path(args.out)
+        raise InputError("no evaluation data for bench pairs: pass --data DIR or set GUIDEDMATCH_DATA (expects "
+                         f"pose_pairs/strecha/{SCENE}/, photos/unsplash/"
+                         f"{', oxford/' if getattr(args, 'oxford', False) else ''})")
+    from ..features import writable_folder
+
+    out = writable_folder(args.out)  # OutputError before any work when --out cannot be written
     out.mkdir(parents=True, exist_ok=True)
     quick = bool(getattr(args, "quick", False))
     repeats = getattr(args, "repeats", None) or 1

@@ -12,14 +12,14 @@ One *row* (a plain ``dict``, JSON-ready) per (pair, method):
 ``precision``              ``true_correspondences / matches`` (Sec. IV-A), ``None`` w/o GT or matches
 ``ransac_inliers``         matches consistent with a fundamental matrix fitted by RANSAC to the matches
 ``ransac_precision``       ``ransac_inliers / matches``: the paper's precision for real images (Table 8)
-``time_s``                 matching wall time from ``MatchResult.stats["time_s"]``
+``time_s``                 matching wall time from ``MatchResult.stats.time_s``
 =========================  =========================================================================
 
 RANSAC-F choice (the paper only says "RANSAC with epipolar geometry"): F is fitted with
 :func:`guidedmatch.epipolar.estimate_fundamental` -- ``method="prosac"`` (OpenCV USAC, PROSAC sampling with
 the matches ordered by ascending descriptor distance, MSAC score, local optimisation), estimation threshold
 1.0 px, confidence 0.999, at most 100 000 iterations, ``seed=0`` (deterministic). Inliers are then counted
-with the symmetric point-to-epipolar-line distance (:func:`guidedmatch.datasets.symmetric_epipolar_distance`)
+with the symmetric point-to-epipolar-line distance (:func:`guidedmatch.epipolar.symmetric_epipolar_distance`)
 under the fitted F and **3 px**, the paper's correctness threshold, so on pairs with ground truth the
 RANSAC precision estimates the GT precision. Why (measured on Strecha Herz-Jesus pairs at 1536 px, SIFT,
 BFMatcher, GT precision vs this estimate): with ratio test 0.904/0.904, 0.809/0.808, 0.692/0.692,
@@ -40,7 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from ..datasets import DEFAULT_THRESHOLD, symmetric_epipolar_distance
+from ..datasets import DEFAULT_THRESHOLD
+from ..epipolar import symmetric_epipolar_distance
 from ..results import Failure, MatchResult
 
 RANSAC_THRESHOLD_PX = 1.0  # USAC inlier threshold used while fitting F, px
@@ -119,8 +120,8 @@ def evaluate_matches(
     """One metrics row for one (pair, method).
 
     Args:
-        result: the matcher output; ``stats["comparisons"]`` (may be ``None``) and ``stats["time_s"]`` are
-            copied, ``stats["method"]`` is used when ``method`` is not given.
+        result: the matcher output; ``stats.comparisons`` (may be ``None``) and ``stats.time_s`` are
+            copied, ``stats.method`` is used when ``method`` is not given.
         features1, features2: ``Features`` (anything with ``.keypoints``) or ``(N, 2)`` keypoint arrays.
         gt: ``HomographyGT`` / ``EpipolarGT`` (anything with ``correct(pts1, pts2, threshold)``) or ``None``.
         threshold: GT correctness threshold in px (paper: 3).
@@ -137,11 +138,11 @@ def evaluate_matches(
     if m and (pairs.min() < 0 or pairs[:, 0].max() >= len(kp1) or pairs[:, 1].max() >= len(kp2)):
         raise IndexError("match indices out of range of the keypoint arrays")
     p1, p2 = kp1[pairs[:, 0]], kp2[pairs[:, 1]]
-    stats = result.stats or {}
-    comps = stats.get("comparisons")
+    stats = result.stats
+    comps = stats.comparisons
     row: dict[str, Any] = {
         "pair": pair,
-        "method": method if method is not None else stats.get("method"),
+        "method": method if method is not None else stats.method,
         "n_features1": len(kp1),
         "n_features2": len(kp2),
         "comparisons": None if comps is None else int(comps),
@@ -150,7 +151,7 @@ def evaluate_matches(
         "precision": None,
         "ransac_inliers": None,
         "ransac_precision": None,
-        "time_s": None if stats.get("time_s") is None else float(stats["time_s"]),
+        "time_s": float(stats.time_s),
     }
     if gt is not None:
         ok = np.asarray(gt.correct(p1, p2, threshold), dtype=bool) if m else np.zeros(0, bool)

@@ -2,7 +2,7 @@
 
 Every peer takes two ``Features`` (or, except GMS, two descriptor arrays: ``float32`` -> L2,
 ``uint8`` packed bits -> Hamming) and returns :class:`guidedmatch.results.MatchResult` with
-``stats = {"method", "comparisons", "time_s", ...}``:
+:class:`~guidedmatch.results.MatchStats` (``method``, ``comparisons``, ``time_s``; settings in ``details``):
 
 =================  ===================================================  =============================
 peer               what                                                 ``comparisons``
@@ -26,7 +26,7 @@ Ratio test as in :mod:`guidedmatch.bruteforce`: keep ``(i, j1)`` iff ``d1 < rati
 Euclidean -- not squared -- distances, Hamming bit counts); with a single image-2 descriptor ``d2 = inf``
 (kept); a query that gets no neighbour back (FLANN LSH can return none) is dropped.
 ``time_s`` covers index building + search + ratio test (descriptors already computed), measured with
-``time.perf_counter``; thread counts of the library used are in ``stats["threads"]``.
+``time.perf_counter``; thread counts of the library used are in ``stats.details["threads"]``.
 """
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from ..results import MatchResult, empty_pairs
+from ..results import MatchResult, MatchStats, empty_pairs
 
 DEFAULT_RATIO = 0.8  # Lowe ratio used by all ratio-test peers
 
@@ -97,10 +97,17 @@ def _knn_lists_to_arrays(knn: list, n1: int) -> tuple[np.ndarray, np.ndarray, np
     return q, nn, d1, d2
 
 
+def _result(method: str, pairs, dist, comparisons: int | None, time_s: float, n1: int, n2: int, *, metric: str,
+            **details) -> MatchResult:
+    """A peer's MatchResult: :class:`~guidedmatch.results.MatchStats` with the peer's settings in ``details``."""
+    stats = MatchStats(method=method, comparisons=comparisons, time_s=time_s, num_features=(n1, n2), metric=metric,
+                       details=details)
+    return MatchResult(pairs, dist, stats)
+
+
 def _empty(method: str, n1: int, n2: int, t0: float, comparisons: int | None, **extra) -> MatchResult:
-    stats = {"method": method, "comparisons": comparisons, "time_s": time.perf_counter() - t0,
-             "num_features": (n1, n2), **extra}
-    return MatchResult(empty_pairs(), np.zeros(0, np.float32), stats)
+    return _result(method, empty_pairs(), np.zeros(0, np.float32), comparisons, time.perf_counter() - t0, n1, n2,
+                   **extra)
 
 
 def match_opencv_bf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO) -> MatchResult:
@@ -117,8 +124,7 @@ def match_opencv_bf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO) -> Ma
     knn = bf.knnMatch(d1, d2, k=min(2, n2))
     pairs, dist = _ratio_select(*_knn_lists_to_arrays(knn, n1), ratio)
     dt = time.perf_counter() - t0
-    return MatchResult(pairs, dist, {"method": "opencv_bf", "comparisons": n1 * n2, "time_s": dt,
-                                     "num_features": (n1, n2), **extra})
+    return _result("opencv_bf", pairs, dist, n1 * n2, dt, n1, n2, **extra)
 
 
 def match_opencv_flann(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *, trees: int = 5,
@@ -128,7 +134,7 @@ def match_opencv_flann(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *,
 
     Float descriptors: randomized KD-trees (``trees``, ``checks`` leaves visited per query). Binary: LSH
     (``lsh_tables`` tables, ``lsh_key_size``-bit keys, ``lsh_multi_probe`` probe level). The number of
-    descriptor distances FLANN evaluates is not exposed, so ``stats["comparisons"]`` is ``None``
+    descriptor distances FLANN evaluates is not exposed, so ``stats.comparisons`` is ``None``
     (unknown) -- never an estimate.
     """
     import cv2
@@ -150,8 +156,7 @@ def match_opencv_flann(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *,
     knn = fl.knnMatch(d1, d2, k=min(2, n2))
     pairs, dist = _ratio_select(*_knn_lists_to_arrays(knn, n1), ratio)
     dt = time.perf_counter() - t0
-    return MatchResult(pairs, dist, {"method": "opencv_flann", "comparisons": None, "time_s": dt,
-                                     "num_features": (n1, n2), **extra})
+    return _result("opencv_flann", pairs, dist, None, dt, n1, n2, **extra)
 
 
 def _import_faiss():
@@ -203,8 +208,7 @@ def match_faiss(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO) -> MatchR
     dist2 = D[:, 1] if k == 2 else np.full(n1, np.inf)
     pairs, dist = _ratio_select(np.arange(n1, dtype=np.int64), nn, dist1, dist2, ratio)
     dt = time.perf_counter() - t0
-    return MatchResult(pairs, dist, {"method": "faiss_flat", "comparisons": n1 * n2, "time_s": dt,
-                                     "num_features": (n1, n2), **extra})
+    return _result("faiss_flat", pairs, dist, n1 * n2, dt, n1, n2, **extra)
 
 
 COLMAP_MAX_DISTANCE = 0.7 * 512.0  # COLMAP SiftMatchingOptions.max_distance (0.7) on descriptors of norm 512 (L2)
@@ -308,7 +312,7 @@ def match_faiss_ivf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *, in
 
     ``index1`` / ``index2``: prebuilt :func:`build_ivf_index` of each image (the cached case; ``time_s`` then is
     search + selection only). Missing ones are built here and their build time is added to ``time_s`` and reported
-    in ``stats["build_s"]``. ``max_distance`` = COLMAP's 0.7 on unit descriptors, times 512 (OpenCV and COLMAP SIFT
+    in ``stats.details["build_s"]`` (``search_s`` = the rest). ``max_distance`` = COLMAP's 0.7 on unit descriptors, times 512 (OpenCV and COLMAP SIFT
     descriptors have norm ~512). Returns pairs sorted by image-1 index.
 
     >>> import numpy as np
@@ -323,7 +327,7 @@ def match_faiss_ivf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *, in
         raise ValueError("match_faiss_ivf needs float descriptors")
     n1, n2 = len(d1), len(d2)
     extra = {"metric": "l2", "ratio": ratio, "max_distance": max_distance, "cross_check": bool(cross_check),
-             "index": "IndexIVFScalarQuantizer(QT_8bit_direct)", "nprobe": int(nprobe)}
+             "index": "IndexIVFScalarQuantizer(QT_8bit_direct)"}
     build_s = 0.0
     if index2 is None and n2:
         index2 = build_ivf_index(d2, nprobe=nprobe)
@@ -335,7 +339,7 @@ def match_faiss_ivf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *, in
     extra["threads"] = faiss.omp_get_max_threads()
     t0 = time.perf_counter()
     if n1 == 0 or n2 == 0:
-        return _empty("faiss_ivf", n1, n2, t0 - build_s, 0, build_s=build_s, **extra)
+        return _empty("faiss_ivf", n1, n2, t0 - build_s, 0, build_s=build_s, search_s=0.0, nlist=0, nprobe=0, **extra)
     for idx, n in ((index2, n2), (index1, n1)):
         if idx is not None and len(idx) != n:
             raise ValueError(f"a prebuilt index holds {len(idx)} descriptors, the features {n}")
@@ -351,11 +355,9 @@ def match_faiss_ivf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *, in
         q = np.flatnonzero(fwd >= 0)
     pairs = np.stack([q, fwd[q]], axis=1).astype(np.int64) if len(q) else empty_pairs()
     dist = D[q, 0].astype(np.float32)
-    dt = time.perf_counter() - t0 + build_s
-    nl = index2.nlist
-    return MatchResult(pairs, dist, {"method": "faiss_ivf", "comparisons": int(comp), "time_s": dt,
-                                     "search_s": dt - build_s, "build_s": build_s, "nlist": nl,
-                                     "num_features": (n1, n2), **extra})
+    search_s = time.perf_counter() - t0
+    return _result("faiss_ivf", pairs, dist, int(comp), search_s + build_s, n1, n2, search_s=search_s, build_s=build_s,
+                   nlist=index2.nlist, nprobe=index2.nprobe, **extra)
 
 
 def match_gms(f1: Any, f2: Any, *, with_rotation: bool = False, with_scale: bool = False,
@@ -365,7 +367,7 @@ def match_gms(f1: Any, f2: Any, *, with_rotation: bool = False, with_scale: bool
     1-NN from ``cv2.BFMatcher.match`` (no ratio test, no cross-check), then
     ``cv2.xfeatures2d.matchGMS(size1, size2, kp1, kp2, matches, withRotation, withScale, thresholdFactor)``.
     Needs ``Features`` (keypoints and ``image_size``), not bare descriptor arrays.
-    ``stats["num_nn_matches"]`` is the number of 1-NN matches fed to GMS; ``time_s`` excludes the
+    ``stats.details["num_nn_matches"]`` is the number of 1-NN matches fed to GMS; ``time_s`` excludes the
     conversion of keypoints to ``cv2.KeyPoint``.
     """
     import cv2
@@ -398,8 +400,7 @@ def match_gms(f1: Any, f2: Any, *, with_rotation: bool = False, with_scale: bool
     else:
         pairs, dist = empty_pairs(), np.zeros(0, np.float32)
     dt = time.perf_counter() - t0
-    return MatchResult(pairs, dist, {"method": "gms", "comparisons": n1 * n2, "time_s": dt,
-                                     "num_features": (n1, n2), "num_nn_matches": len(nn), **extra})
+    return _result("gms", pairs, dist, n1 * n2, dt, n1, n2, num_nn_matches=len(nn), **extra)
 
 
 def _cv_keypoints(f: Any) -> list:

@@ -19,18 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..alignment import apply_homography
+from ..epipolar import skew
+
 
 def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
     """Rodrigues rotation about a unit ``axis`` by ``angle`` radians."""
     axis = np.asarray(axis, float)
-    axis = axis / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    k = skew(axis / np.linalg.norm(axis))
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """``[v]_x`` such that ``skew(v) @ w == cross(v, w)``."""
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], float)
 
 
 def fundamental_from_pose(K1, K2, R, t) -> np.ndarray:
@@ -132,8 +129,7 @@ class TwoViewScene:
             sel = lab == k
             if not sel.any():
                 continue
-            p = np.c_[pts1[sel], np.ones(sel.sum())] @ H.T
-            out[sel] = p[:, :2] / p[:, 2:3]
+            out[sel] = apply_homography(H, pts1[sel])
         ok = np.isfinite(out).all(axis=1)
         h2, w2 = self.labels2.shape
         qx = np.rint(np.where(ok, out[:, 0], -1)).astype(int)

@@ -1,0 +1,612 @@
+"""Where a collection's matches go: a COLMAP database (matches + two-view geometries) or an hloc ``matches.h5``.
+
+Every sink is a context manager holding an exclusive write lock (``fcntl.flock`` on ``<file>.lock`` beside it):
+a second writer of the same file gets :class:`~guidedmatch.errors.DatabaseBusyError` at once. A file that cannot
+be written raises :class:`~guidedmatch.errors.OutputError` in the constructor, before any matching. Each
+:meth:`MatchSink.write` stores one pair completely or not at all, and :meth:`MatchSink.done_pairs` lists the pairs
+already stored, so an interrupted run resumes where it stopped.
+
+COLMAP conventions handled here
+-------------------------------
+* COLMAP stores a pair once, under ``image_id1 < image_id2``; a pair given the other way round is stored with its
+  match columns swapped, ``F -> F^T`` and ``H -> H^-1`` (and read back the same way by ``pycolmap``).
+* Our ``F``/``H`` act on OpenCV pixels (origin at the centre of the top-left pixel); COLMAP's on COLMAP pixels
+  (``x_colmap = x_cv + 0.5``). With ``T = [[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1]]`` (``x_cv = T x_colmap``):
+  ``F_colmap = T^T F T`` and ``H_colmap = T^-1 H T``.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, DatabaseBusyError, DatabaseError, InputError, OutputError
+
+__all__ = ["MatchSink", "ColmapSink", "H5MatchesSink", "names_to_pair", "WriteLock", "colmap_pixel_geometry"]
+
+_T = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # x_cv = T x_colmap
+_T_INV = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+
+
+def colmap_pixel_geometry(F: np.ndarray | None, H: np.ndarray | None, swap: bool = False):
+    """``(F, H)`` from OpenCV pixels to COLMAP pixels, transposed / inverted when the pair is stored swapped.
+
+    >>> F = np.arange(9.0).reshape(3, 3); x1 = np.array([3.0, 4.0, 1.0]); x2 = np.array([7.0, 1.0, 1.0])
+    >>> Fc, _ = colmap_pixel_geometry(F, None)
+    >>> bool(np.isclose(x2 @ F @ x1, (x2 + [.5, .5, 0]) @ Fc @ (x1 + [.5, .5, 0])))
+    True
+    """
+    Fc = Hc = None
+    if F is not None:
+        Fc = _T.T @ np.asarray(F, np.float64) @ _T
+        if swap:
+            Fc = Fc.T
+    if H is not None:
+        Hc = _T_INV @ np.asarray(H, np.float64) @ _T
+        if swap:
+            Hc = np.linalg.inv(Hc)
+        Hc = Hc / Hc[2, 2] if abs(Hc[2, 2]) > 1e-12 else Hc
+    return Fc, Hc
+
+
+# ====================================================================== lock
+class WriteLock:
+    """Exclusive, non-blocking ``fcntl.flock`` on ``<target>.lock`` (released on close or process death)."""
+
+    def __init__(self, target: str | os.PathLike) -> None:
+        self.target = Path(target)
+        self.path = self.target.with_name(self.target.name + ".lock")
+        self._fd: int | None = None
+
+    def acquire(self) -> "WriteLock":
+        import fcntl
+
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise OutputError(f"cannot create the lock file {self.path}: {exc.strerror}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            finally:
+                os.close(fd)
+            raise DatabaseBusyError(f"{self.target} is being written by another process (pid {holder}, lock "
+                                    f"{self.path}); wait for it to finish or stop it, then rerun (finished pairs "
+                                    "are kept)") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        import fcntl
+
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_UN)
+            finally:
+                os.close(fd)
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+
+def _check_writable(path: Path, what: str) -> None:
+    """OutputError when ``path`` (existing) or its folder cannot be written by this process."""
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise OutputError(f"{what} path is a directory: {path}")
+    if not parent.is_dir():
+        raise OutputError(f"folder of the {what} does not exist: {parent}")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OutputError(f"{what} {path} is read-only; make it writable or work on a copy")
+    if not os.access(parent, os.W_OK):
+        raise OutputError(f"folder {parent} of the {what} is read-only (SQLite / HDF5 need to create files "
+                          "beside it)")
+
+
+def _check_pairs(name1: str, name2: str, pairs, scores, n1: int | None, n2: int | None):
+    if name1 == name2:
+        raise InputError(f"cannot store a self-pair ({name1!r})")
+    p = np.asarray(pairs)
+    if p.size == 0:
+        p = p.reshape(0, 2)
+    if p.ndim != 2 or p.shape[1] != 2 or not (np.issubdtype(p.dtype, np.integer) or p.size == 0):
+        raise InputError(f"pairs of {name1} / {name2} must be an (M, 2) integer array, got {p.dtype} {p.shape}")
+    p = p.astype(np.int64)
+    if len(p) and p.min() < 0:
+        raise InputError(f"pairs of {name1} / {name2} contain negative feature indices")
+    for col, (name, n) in enumerate(((name1, n1), (name2, n2))):
+        if n is not None and len(p) and p[:, col].max() >= n:
+            raise InputError(f"pairs of {name1} / {name2}: feature index {int(p[:, col].max())} out of range for "
+                             f"{name!r} ({n} features)")
+    if scores is None:
+        s = np.zeros(len(p), np.float32)
+    else:
+        s = np.asarray(scores, np.float32).reshape(-1)
+        if len(s) != len(p):
+            raise InputError(f"{len(s)} scores for {len(p)} matches ({name1} / {name2})")
+    return p, s
+
+
+class MatchSink:
+    """Base class: a locked, resumable destination of per-pair matches (a context manager)."""
+
+    kind = ""
+
+    def done_pairs(self, candidates=None) -> set[frozenset[str]]:
+        """Pairs already complete in the sink (resume: skip them). Pass the pair list as ``candidates`` for an
+        exact answer restricted to it (ColmapSink: see its note on pairs with zero matches)."""
+        raise NotImplementedError
+
+    def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None,
+              geometry=None) -> None:
+        """Store the matches of one pair atomically (``pairs (M, 2)`` indices into name1's / name2's features,
+        ``scores (M,)`` per-match values (the engine's descriptor distances), ``geometry`` a
+        :class:`~guidedmatch.geometry.TwoViewGeometry` or None)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ====================================================================== COLMAP
+class ColmapSink(MatchSink):
+    """Write matches (and two-view geometries) into an existing COLMAP database through ``pycolmap.Database``.
+
+    Args:
+        database_path: a COLMAP database with the images (and their keypoints) the matches refer to.
+        geometry: ``"ours"`` -- write the matches and our two-view geometry: ``config`` =
+            ``geometry.colmap_config`` (3 UNCALIBRATED / 6 PLANAR_OR_PANORAMIC when verified, 1 DEGENERATE
+            otherwise), ``F`` and/or ``H`` (COLMAP pixels) and the inlier matches, so ``colmap mapper`` /
+            ``pycolmap.incremental_mapping`` runs without a verification step (unverified pairs get a geometry
+            row with no inliers: the mapper ignores them, and the pair counts as done);
+            ``"colmap"`` -- write raw matches only, then :meth:`verify` runs COLMAP's geometric verification over
+            them; ``"none"`` -- raw matches only.
+        overwrite: rematch pairs already in the database (``done_pairs()`` is empty; writes replace rows).
+
+    Raises (in the constructor, before any work): DatabaseError (missing / not a COLMAP database),
+    OutputError (read-only), DatabaseBusyError (another process holds the lock), ConfigError (bad ``geometry``).
+    """
+
+    kind = "colmap"
+    #: ``done_pairs()`` checks every image pair exactly up to this many pairs (50,000 ~ 0.6 s), else bulk reads.
+    EXACT_PAIRS = 50_000
+
+    def __init__(self, database_path: str | os.PathLike, geometry: str = "ours", *, overwrite: bool = False) -> None:
+        from ..validation import check_bool, check_choice
+        from .sources import _open_colmap
+
+        check_choice("ColmapSink", "geometry", geometry, ("ours", "colmap", "none"))
+        check_bool("ColmapSink", "overwrite", overwrite)
+        self.path = Path(database_path)
+        self.geometry = geometry
+        self.overwrite = overwrite
+        self._db = None
+        if not self.path.exists():
+            raise DatabaseError(f"COLMAP database not found: {self.path}")
+        _check_writable(self.path, "COLMAP database")
+        self._lock = WriteLock(self.path).acquire()
+        try:
+            self._db = _open_colmap(self.path)
+            images = self._db.read_all_images()
+            self._ids = {im.name: int(im.image_id) for im in images}
+            self._names = {v: k for k, v in self._ids.items()}
+            self._nkp = {im.name: (self._db.num_keypoints_for_image(im.image_id)
+                                   if self._db.exists_keypoints(im.image_id) else 0) for im in images}
+        except BaseException:
+            self.close()
+            raise
+        self.written = 0
+
+    def _id(self, name: str) -> int:
+        try:
+            return self._ids[name]
+        except KeyError:
+            raise InputError(f"image {name!r} is not in COLMAP database {self.path}") from None
+
+    def _pair_names(self, pair_id: int) -> frozenset[str] | None:
+        import pycolmap
+
+        i1, i2 = pycolmap.pair_id_to_image_pair(int(pair_id))
+        a, b = self._names.get(int(i1)), self._names.get(int(i2))
+        return frozenset((a, b)) if a is not None and b is not None else None
+
+    def _exists(self, i1: int, i2: int) -> bool:
+        db = self._db
+        if self.geometry == "ours":
+            return db.exists_two_view_geometry(i1, i2)
+        return db.exists_matches(i1, i2)
+
+    def done_pairs(self, candidates=None) -> set[frozenset[str]]:
+        """Pairs already complete: with a two-view geometry row (``geometry="ours"``) or a matches row.
+
+        With ``candidates`` (pairs of names) each one is checked exactly (~12 us per pair). Without, databases of
+        up to ``EXACT_PAIRS`` image pairs (~320 images) are checked pair by pair too; larger ones are read with
+        pycolmap's bulk readers, which skip rows with zero matches and no geometry matrix: such a pair (an image
+        without features) is matched again on resume and its rows are replaced (same result).
+        """
+        if self.overwrite:
+            return set()
+        db = self._db
+        if candidates is None and len(self._ids) * (len(self._ids) - 1) // 2 <= self.EXACT_PAIRS:
+            names = sorted(self._ids)
+            candidates = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+        if candidates is not None:
+            out = set()
+            for a, b in candidates:
+                if a in self._ids and b in self._ids and self._exists(self._ids[a], self._ids[b]):
+                    out.add(frozenset((a, b)))
+            return out
+        ids = set(db.read_num_matches()[0])
+        if self.geometry == "ours":
+            geo_ids = set(db.read_two_view_geometry_num_inliers()[0])
+            geo_ids |= set(db.read_two_view_geometries()[0])
+            import pycolmap
+
+            ids = geo_ids | {p for p in ids - geo_ids
+                             if db.exists_two_view_geometry(*pycolmap.pair_id_to_image_pair(int(p)))}
+        return {s for s in map(self._pair_names, ids) if s is not None}
+
+    def _two_view(self, p: np.ndarray, geometry, swap: bool):
+        import pycolmap
+
+        tvg = pycolmap.TwoViewGeometry()
+        if geometry is None:
+            tvg.config = 0  # UNDEFINED: the matcher gave no verdict
+            return tvg
+        inl = np.asarray(geometry.inliers, bool).reshape(-1)
+        if len(inl) != len(p):
+            raise InputError(f"geometry.inliers has {len(inl)} entries for {len(p)} matches")
+        tvg.config = int(geometry.colmap_config)
+        if geometry:
+            Fc, Hc = colmap_pixel_geometry(geometry.F, geometry.H, swap)
+            if Fc is not None:
+                tvg.F = Fc
+            if Hc is not None:
+                tvg.H = Hc
+            tvg.inlier_matches = np.ascontiguousarray(p[inl], dtype=np.uint32).reshape(-1, 2)
+        return tvg
+
+    def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None = None,
+              geometry=None) -> None:
+        """Store one pair's matches (+ two-view geometry with ``geometry="ours"``) in one transaction.
+
+        ``pairs (M, 2)`` index name1's and name2's keypoints; the pair is stored under COLMAP's order (smaller
+        image id first: columns swapped, F transposed, H inverted when needed). Scores are not stored (COLMAP has
+        no column for them). A pair already in the database is replaced.
+        """
+        import pycolmap
+
+        if self._db is None:
+            raise OutputError(f"ColmapSink({self.path}) is closed")
+        i1, i2 = self._id(name1), self._id(name2)
+        p, _ = _check_pairs(name1, name2, pairs, scores, self._nkp[name1], self._nkp[name2])
+        swap = i1 > i2
+        if swap:
+            i1, i2, p = i2, i1, p[:, ::-1]
+        m = np.ascontiguousarray(p, dtype=np.uint32).reshape(-1, 2)
+        tvg = self._two_view(p, geometry, swap) if self.geometry == "ours" else None
+        db = self._db
+        with pycolmap.DatabaseTransaction(db):
+            # pycolmap's transaction commits on exit even after an exception: undo by hand so a pair is stored
+            # completely or not at all (a crash / kill -9 leaves the open transaction to SQLite's rollback)
+            try:
+                self._write_rows(db, i1, i2, m, tvg)
+            except BaseException:
+                for fn in (db.delete_matches, db.delete_two_view_geometry):
+                    try:
+                        fn(i1, i2)
+                    except Exception:
+                        pass
+                raise
+        self.written += 1
+
+    @staticmethod
+    def _write_rows(db, i1: int, i2: int, m: np.ndarray, tvg) -> None:
+        """Replace the pair's rows (called inside the transaction of :meth:`write`)."""
+        if db.exists_matches(i1, i2):
+            db.delete_matches(i1, i2)
+        if db.exists_two_view_geometry(i1, i2):
+            db.delete_two_view_geometry(i1, i2)
+        db.write_matches(i1, i2, m)
+        if tvg is not None:
+            db.write_two_view_geometry(i1, i2, tvg)
+
+    def verify(self, options=None, pairs=None) -> int:
+        """Run COLMAP's geometric verification (``pycolmap.verify_matches``) over the pairs with matches and no
+        two-view geometry (or the given ``pairs``); returns the number of pairs verified.
+
+        ``options``: ``pycolmap.TwoViewGeometryOptions`` or a dict of its fields (COLMAP defaults otherwise).
+        Only for ``geometry="colmap"``.
+        """
+        import pycolmap
+
+        if self.geometry != "colmap":
+            raise ConfigError(f"ColmapSink.verify needs geometry='colmap' (this sink has geometry={self.geometry!r})")
+        if isinstance(options, dict):
+            opts = pycolmap.TwoViewGeometryOptions()
+            opts.mergedict(options)
+            options = opts
+        options = options or pycolmap.TwoViewGeometryOptions()
+        db = self._db
+        if pairs is None:
+            todo = []
+            for pid in db.read_num_matches()[0]:
+                i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+                if not db.exists_two_view_geometry(i1, i2):
+                    todo.append((self._names[int(i1)], self._names[int(i2)]))
+        else:
+            todo = [(a, b) for a, b in pairs if db.exists_matches(self._id(a), self._id(b))]
+        if not todo:
+            return 0
+        fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".pairs.txt", dir=self.path.parent)
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.writelines(f"{a} {b}\n" for a, b in todo)
+            self._db.close()  # COLMAP opens its own connection; ours holds no transaction but keep it simple
+            self._db = None
+            pycolmap.verify_matches(str(self.path), tmp, options)
+        finally:
+            os.unlink(tmp)
+            from .sources import _open_colmap
+
+            if self._db is None and self._lock.held:
+                self._db = _open_colmap(self.path)
+        return len(todo)
+
+    def close(self) -> None:
+        db, self._db = self._db, None
+        if db is not None:
+            db.close()
+        lock = getattr(self, "_lock", None)
+        if lock is not None:
+            lock.release()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+# ====================================================================== hloc
+def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
+    """hloc's key of a pair in ``matches.h5`` (hloc/utils/parsers.py): ``/`` in names becomes ``-``.
+
+    >>> names_to_pair("seq/a.jpg", "b.jpg")
+    'seq-a.jpg/b.jpg'
+    """
+    return separator.join((name0.replace("/", "-"), name1.replace("/", "-")))
+
+
+class H5MatchesSink(MatchSink):
+    """Write matches as an hloc ``matches.h5``: group ``names_to_pair(name1, name2)`` with ``matches0 (N1,) int32``
+    (index into name2's features, -1 = unmatched; int32 holds any keypoint count, hloc's own int16 stops at
+    32,767) and ``matching_scores0 (N1,) float32`` (the scores given to :meth:`write`, 0 where unmatched).
+
+    Crash safety: writes are buffered and flushed every ``flush_every`` pairs (and on close) as a complete new
+    segment file in ``<matches>.parts/`` (temp file + rename); :meth:`close` merges the existing ``matches.h5``
+    and all segments into a temp file renamed over ``matches.h5``. A kill at any moment leaves the old
+    ``matches.h5`` plus complete segments; the next run counts their pairs as done and merges them. Pairs still in
+    the buffer at a crash are simply matched again.
+
+    Args:
+        matches_h5: output path.
+        source: the :class:`~guidedmatch.collection.sources.FeatureSource` (or ``{name: num_features}``) giving
+            ``N1`` -- ``matches0`` then has exactly one entry per keypoint of name1, as hloc writes it. Without
+            it ``matches0`` ends at the last matched index (hloc's readers only use entries != -1);
+            ``report["matches0_length"]`` says which.
+        flush_every: pairs per segment file.
+        overwrite: start over (existing pairs are not reported as done and are replaced at close).
+    """
+
+    kind = "h5"
+
+    def __init__(self, matches_h5: str | os.PathLike, source=None, *, flush_every: int = 64,
+                 overwrite: bool = False) -> None:
+        from ..validation import check_bool, check_number
+
+        check_number("H5MatchesSink", "flush_every", flush_every, lo=1, integer=True)
+        check_bool("H5MatchesSink", "overwrite", overwrite)
+        self.path = Path(matches_h5)
+        self.parts = self.path.with_name(self.path.name + ".parts")
+        self.flush_every = int(flush_every)
+        self.overwrite = overwrite
+        self._buffer: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._segments = 0
+        self._closed = False
+        if source is None:
+            self._nf, names = None, []
+        elif isinstance(source, dict):
+            self._nf, names = {str(k): int(v) for k, v in source.items()}, list(source)
+        else:
+            names = source.names()
+            self._nf = {n: source.num_features(n) for n in names}
+        self._unsanitize = {n.replace("/", "-"): n for n in names}
+        self.report = {"matches0_length": "num_features" if self._nf is not None else "last matched index + 1"}
+        _check_writable(self.path, "matches file")
+        if self.path.exists():
+            self._check_h5(self.path)
+        self._lock = WriteLock(self.path).acquire()
+        try:
+            self.parts.mkdir(exist_ok=True)
+            for f in self.parts.iterdir():
+                if f.name.endswith(".tmp"):
+                    f.unlink()  # an interrupted segment write: never renamed, so incomplete
+            if overwrite:
+                for f in self.parts.glob("*.h5"):
+                    f.unlink()
+        except BaseException:
+            self._lock.release()
+            raise
+        self._done = set() if overwrite else self._stored_keys()
+
+    @staticmethod
+    def _check_h5(path: Path) -> None:
+        import h5py
+
+        try:
+            with h5py.File(path, "r"):
+                pass
+        except OSError as exc:
+            raise DatabaseError(f"{path} exists but is not an HDF5 file ({exc}); move it away") from None
+
+    def _keys_of(self, path: Path) -> set[str]:
+        import h5py
+
+        keys: set[str] = set()
+        with h5py.File(path, "r") as fh:
+            fh.visititems(lambda n, obj: keys.add(n) if isinstance(obj, h5py.Group) and "matches0" in obj else None)
+        return keys
+
+    def _segment_files(self) -> list[Path]:
+        return sorted(self.parts.glob("*.h5"))
+
+    def _stored_keys(self) -> set[str]:
+        keys: set[str] = set()
+        if self.path.exists():
+            keys |= self._keys_of(self.path)
+        for seg in self._segment_files():
+            keys |= self._keys_of(seg)
+        return keys
+
+    def _key_names(self, key: str) -> frozenset[str] | None:
+        parts = key.split("/")
+        if len(parts) != 2:
+            return None
+        a, b = (self._unsanitize.get(x, x) for x in parts)
+        return frozenset((a, b))
+
+    def done_pairs(self, candidates=None) -> set[frozenset[str]]:
+        """Pairs in ``matches.h5``, in complete segments, or written in this session (either key order);
+        restricted to ``candidates`` (pairs of names) when given."""
+        keys = set(self._done) | set(self._buffer)
+        if candidates is not None:
+            return {frozenset((a, b)) for a, b in candidates
+                    if names_to_pair(a, b) in keys or names_to_pair(b, a) in keys}
+        return {s for s in map(self._key_names, keys) if s is not None}
+
+    def write(self, name1: str, name2: str, pairs: np.ndarray, scores: np.ndarray | None = None,
+              geometry=None) -> None:
+        """Buffer one pair under ``names_to_pair(name1, name2)`` (``matches0`` over name1's features).
+
+        ``scores`` are stored as given in ``matching_scores0`` (0 where unmatched). hloc's learned matchers store
+        confidences there (higher = better); the collection engine passes descriptor distances (lower = better).
+        hloc's own pipeline reads them only through ``import_matches(min_match_score=...)``, off by default -- do
+        not set it on our files. ``geometry`` is not stored (hloc verifies in COLMAP at import). A pair already
+        stored (either order) is replaced at close.
+        """
+        if self._closed:
+            raise OutputError(f"H5MatchesSink({self.path}) is closed")
+        n1 = n2 = None
+        if self._nf is not None:
+            for n in (name1, name2):
+                if n not in self._nf:
+                    raise InputError(f"image {n!r} is not in the feature source of {self.path}")
+            n1, n2 = self._nf[name1], self._nf[name2]
+        p, s = _check_pairs(name1, name2, pairs, scores, n1, n2)
+        if len(np.unique(p[:, 0])) != len(p):
+            raise InputError(f"matches0 holds one match per feature of {name1!r}; got repeated indices")
+        length = n1 if n1 is not None else (int(p[:, 0].max()) + 1 if len(p) else 0)
+        m0 = np.full(length, -1, np.int32)
+        s0 = np.zeros(length, np.float32)
+        m0[p[:, 0]] = p[:, 1]
+        s0[p[:, 0]] = s
+        key = names_to_pair(name1, name2)
+        rkey = names_to_pair(name2, name1)
+        self._buffer.pop(rkey, None)  # the later write of a pair wins, whatever its order
+        self._buffer[key] = (m0, s0)
+        if len(self._buffer) >= self.flush_every:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the buffered pairs as one new segment file (temp file + rename: complete or absent)."""
+        import h5py
+
+        if not self._buffer:
+            return
+        fd, tmp = tempfile.mkstemp(prefix=f"seg-{os.getpid()}-", suffix=".tmp", dir=self.parts)
+        os.close(fd)
+        try:
+            with h5py.File(tmp, "w") as fh:
+                for key, (m0, s0) in self._buffer.items():
+                    grp = fh.create_group(key)
+                    grp.create_dataset("matches0", data=m0)
+                    grp.create_dataset("matching_scores0", data=s0)
+            final = self.parts / f"seg-{time.time_ns():020d}-{os.getpid()}.h5"
+            os.replace(tmp, final)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        self._done |= set(self._buffer)
+        self._buffer.clear()
+        self._segments += 1
+
+    def _merge(self) -> None:
+        """``matches.h5`` + segments (later ones win) -> temp file -> rename; then delete the segments."""
+        import h5py
+
+        from ..features import publish
+
+        segments = self._segment_files()
+        if not segments and self.path.exists() and not self.overwrite:
+            return
+        fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp.h5", dir=self.path.parent)
+        os.close(fd)
+        try:
+            with h5py.File(tmp, "w") as out:
+                sources = ([] if (self.overwrite or not self.path.exists()) else [self.path]) + segments
+                for src in sources:
+                    with h5py.File(src, "r") as fh:
+                        for key in sorted(self._keys_of(src)):
+                            rkey = "/".join(key.split("/")[::-1])
+                            if key in out:
+                                del out[key]
+                            if rkey in out and src != self.path:  # a later segment stored the other order
+                                del out[rkey]
+                            fh.copy(fh[key], out, name=key)
+            publish(tmp, self.path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        for seg in segments:
+            seg.unlink()
+
+    def close(self) -> None:
+        """Flush, merge into ``matches.h5`` (atomic rename), remove the segments, release the lock."""
+        if self._closed:
+            return
+        try:
+            self.flush()
+            self._merge()
+            try:
+                self.parts.rmdir()
+            except OSError:
+                pass
+        finally:
+            self._closed = True
+            self._lock.release()
+
+    def __del__(self) -> None:
+        try:
+            if not getattr(self, "_closed", True):
+                self._lock.release()  # no merge from a finalizer: segments stay for the next run
+                self._closed = True
+        except Exception:
+            pass

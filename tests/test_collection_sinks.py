@@ -1,0 +1,524 @@
+"""Match sinks: COLMAP database rows (pair order, pixel convention, atomicity, lock, read-only), hloc matches.h5."""
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import h5py
+import numpy as np
+import pycolmap
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from guidedmatch.collection.sinks import ColmapSink, H5MatchesSink, colmap_pixel_geometry, names_to_pair
+from guidedmatch.collection.sources import ColmapSource, images_to_database
+from guidedmatch.errors import ConfigError, DatabaseBusyError, DatabaseError, InputError, OutputError
+from guidedmatch.geometry import TwoViewGeometry, two_view_geometry
+from guidedmatch.matcher import match
+
+SRC = os.path.join(os.path.dirname(__file__), os.pardir, "src")
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """A 3-view COLMAP database (ours), the matches of views 0-1 and their two-view verdict."""
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(3, (320, 240), seed=5, isolated=False)
+    root = tmp_path_factory.mktemp("sinkdb")
+    write_views(mv, root / "img")
+    src = images_to_database(root / "img", root / "db.db", max_features=800, progress=False)
+    a, b = mv.names[0], mv.names[1]
+    fa, fb = src.load(a), src.load(b)
+    r = match(fa, fb)
+    g = two_view_geometry(fa.keypoints[r.pairs[:, 0]], fb.keypoints[r.pairs[:, 1]], fa.image_size, fb.image_size)
+    assert g and g.model == "F" and g.H is not None and g.num_inliers > 30  # both F and H rows get exercised
+    return root / "db.db", mv, src, r, g
+
+
+@pytest.fixture
+def db_copy(base, tmp_path):
+    path = tmp_path / "db.db"
+    shutil.copy(base[0], path)
+    return path
+
+
+def _reversed(g: TwoViewGeometry) -> TwoViewGeometry:
+    """The same verdict for the pair given the other way round (F^T, H^-1)."""
+    return TwoViewGeometry(g.verdict, g.model, None if g.F is None else g.F.T,
+                           None if g.H is None else np.linalg.inv(g.H), g.inliers, g.num_inliers, g.num_matches,
+                           g.reason)
+
+
+def _scaled_equal(A, B, tol=1e-6):
+    A, B = A / np.linalg.norm(A), B / np.linalg.norm(B)
+    return min(np.abs(A - B).max(), np.abs(A + B).max()) < tol
+
+
+def test_colmap_round_trip(base, db_copy):
+    _, mv, src, r, g = base
+    a, b = mv.names[0], mv.names[1]
+    with ColmapSink(db_copy) as sink:
+        assert sink.done_pairs() == set()
+        sink.write(a, b, r.pairs, r.distances, g)
+        assert sink.done_pairs() == {frozenset((a, b))}
+    db = pycolmap.Database.open(str(db_copy))
+    i1, i2 = db.read_image_with_name(a).image_id, db.read_image_with_name(b).image_id
+    assert i1 < i2
+    assert np.array_equal(db.read_matches(i1, i2).astype(np.int64), r.pairs)
+    tvg = db.read_two_view_geometry(i1, i2)
+    assert int(tvg.config) == g.colmap_config
+    assert np.array_equal(tvg.inlier_matches.astype(np.int64), r.pairs[g.inliers])
+    kp1 = db.read_keypoints(i1)[:, :2].astype(float)
+    kp2 = db.read_keypoints(i2)[:, :2].astype(float)
+    db.close()
+    # F in COLMAP pixels: the inliers' COLMAP keypoints satisfy it as ours satisfy g.F in OpenCV pixels
+    x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)]
+    x2 = np.c_[kp2[tvg.inlier_matches[:, 1]], np.ones(g.num_inliers)]
+    l2 = x1 @ tvg.F.T
+    d = np.abs(np.sum(x2 * l2, 1)) / np.hypot(l2[:, 0], l2[:, 1])
+    assert np.median(d) < 1.0
+    fa, fb = src.load(a), src.load(b)
+    y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)]
+    y2 = np.c_[fb.keypoints[r.pairs[g.inliers, 1]], np.ones(g.num_inliers)]
+    l2c = y1 @ g.F.T
+    dc = np.abs(np.sum(y2 * l2c, 1)) / np.hypot(l2c[:, 0], l2c[:, 1])
+    assert np.allclose(d, dc, atol=1e-3)  # float32 keypoints in the db
+    assert _scaled_equal(tvg.H, colmap_pixel_geometry(None, g.H)[1])
+    # the same matches as a planar verdict: config 6 (PLANAR_OR_PANORAMIC), H maps COLMAP pixels of the inliers
+    gh = TwoViewGeometry("verified", "H", None, g.H, g.inliers, g.num_inliers, g.num_matches, "planar")
+    with ColmapSink(db_copy) as sink:
+        sink.write(b, a, r.pairs[:, ::-1], None, _reversed(gh))
+    db = pycolmap.Database.open(str(db_copy))
+    tvg = db.read_two_view_geometry(i1, i2)
+    db.close()
+    assert int(tvg.config) == 6 and tvg.F is None
+    assert np.array_equal(tvg.inlier_matches.astype(np.int64), r.pairs[g.inliers])
+    x1 = np.c_[kp1[tvg.inlier_matches[:, 0]], np.ones(g.num_inliers)] @ tvg.H.T
+    fa, fb = src.load(a), src.load(b)
+    y1 = np.c_[fa.keypoints[r.pairs[g.inliers, 0]], np.ones(g.num_inliers)] @ g.H.T
+    assert np.allclose(x1[:, :2] / x1[:, 2:3] - 0.5, y1[:, :2] / y1[:, 2:3], atol=1e-3)
+
+
+def test_colmap_reversed_pair_stored_canonically(base, db_copy, tmp_path):
+    _, mv, _, r, g = base
+    a, b = mv.names[0], mv.names[1]
+    other = tmp_path / "other.db"
+    shutil.copy(db_copy, other)
+    with ColmapSink(db_copy) as sink:
+        sink.write(a, b, r.pairs, None, g)
+    with ColmapSink(other) as sink:
+        sink.write(b, a, r.pairs[:, ::-1], None, _reversed(g))
+        assert sink.done_pairs() == {frozenset((a, b))}
+    rows = []
+    for path in (db_copy, other):
+        db = pycolmap.Database.open(str(path))
+        i1, i2 = db.read_image_with_name(a).image_id, db.read_image_with_name(b).image_id
+        rows.append((db.read_matches(i1, i2), db.read_two_view_geometry(i1, i2)))
+        db.close()
+    (m1, t1), (m2, t2) = rows
+    assert np.array_equal(m1, m2) and np.array_equal(t1.inlier_matches, t2.inlier_matches)
+    assert t1.config == t2.config
+    for M1, M2 in ((t1.F, t2.F), (t1.H, t2.H)):
+        assert (M1 is None) == (M2 is None)
+        if M1 is not None:
+            assert _scaled_equal(M1, M2)
+
+
+@settings(max_examples=40, deadline=None)
+@given(M=arrays(np.float64, (3, 3), elements=st.floats(-2, 2)),
+       p=arrays(np.float64, (5, 2), elements=st.floats(0, 500)), swap=st.booleans())
+def test_colmap_pixel_geometry(M, p, swap):
+    """H and F converted to COLMAP pixels act on x + 0.5 as the originals act on x (and swap = other order)."""
+    H = M + np.diag([3.0, 3.0, 3.0])  # well conditioned
+    x1 = np.c_[p, np.ones(5)]
+    y = x1 @ H.T
+    if np.any(np.abs(y[:, 2]) < 1e-3):
+        return
+    x2 = y / y[:, 2:3]
+    off = np.array([0.5, 0.5, 0.0])
+    Fc, Hc = colmap_pixel_geometry(M, H, swap)
+    if swap:  # stored for the pair (2, 1): maps image-2 COLMAP pixels to image-1 ones
+        z = (x2 + off) @ Hc.T
+        assert np.allclose(z[:, :2] / z[:, 2:3], (x1 + off)[:, :2], atol=1e-6 * (1 + np.abs(x1).max()))
+        assert np.allclose(np.einsum("ij,jk,ik->i", x1 + off, Fc, x2 + off), np.einsum("ij,jk,ik->i", x2, M, x1))
+    else:
+        z = (x1 + off) @ Hc.T
+        assert np.allclose(z[:, :2] / z[:, 2:3], (x2 + off)[:, :2], atol=1e-6 * (1 + np.abs(x2).max()))
+        assert np.allclose(np.einsum("ij,jk,ik->i", x2 + off, Fc, x1 + off), np.einsum("ij,jk,ik->i", x2, M, x1))
+
+
+def test_colmap_unverified_pair_and_resume(base, db_copy):
+    _, mv, src, r, _ = base
+    a, c = mv.names[0], mv.names[2]
+    pairs = r.pairs[r.pairs[:, 1] < src.num_features(c)]  # some (wrong) matches, valid indices
+    no = TwoViewGeometry("no-overlap", "none", None, None, np.zeros(len(pairs), bool), 0, len(pairs), "test")
+    with ColmapSink(db_copy) as sink:
+        sink.write(c, a, pairs[:, ::-1], None, no)
+    with ColmapSink(db_copy) as sink:  # a new run sees the pair as done
+        assert sink.done_pairs() == {frozenset((a, c))}
+        assert sink.done_pairs([(a, c), (mv.names[1], a)]) == {frozenset((a, c))}
+    b = mv.names[1]
+    few = TwoViewGeometry("too-few-matches", "none", None, None, np.zeros(0, bool), 0, 0, "no matches")
+    with ColmapSink(db_copy) as sink:
+        sink.write(a, b, np.zeros((0, 2), np.int64), np.zeros(0, np.float32), few)
+        assert sink.done_pairs() == {frozenset((a, b)), frozenset((a, c))}  # small db: exact, pair by pair
+        assert sink.done_pairs([(b, a), (mv.names[1], c)]) == {frozenset((a, b))}
+        sink.EXACT_PAIRS = 0  # pycolmap's bulk readers skip rows with 0 matches and no matrix (documented)
+        assert sink.done_pairs() == {frozenset((a, c))}
+    with ColmapSink(db_copy, overwrite=True) as sink:
+        assert sink.done_pairs() == set()
+    db = pycolmap.Database.open(str(db_copy))
+    tvg = db.read_two_view_geometry(db.read_image_with_name(a).image_id, db.read_image_with_name(c).image_id)
+    assert int(tvg.config) == 1 and len(tvg.inlier_matches) == 0 and tvg.F is None and tvg.H is None
+    assert db.read_two_view_geometry_num_inliers() == ([], [])  # no pair with inliers for the mapper
+    db.close()
+
+
+def test_colmap_write_is_atomic(base, db_copy, monkeypatch):
+    """An error between the matches row and the geometry row leaves neither (pycolmap commits on exit)."""
+    _, mv, _, r, g = base
+    a, b = mv.names[0], mv.names[1]
+
+    def failing(db, i1, i2, m, tvg):
+        db.write_matches(i1, i2, m)
+        raise RuntimeError("simulated failure after the matches row")
+
+    with ColmapSink(db_copy) as sink:
+        monkeypatch.setattr(ColmapSink, "_write_rows", staticmethod(failing))
+        with pytest.raises(RuntimeError, match="simulated"):
+            sink.write(a, b, r.pairs, None, g)
+        monkeypatch.undo()
+        assert sink.done_pairs() == set()
+    db = pycolmap.Database.open(str(db_copy))
+    assert db.num_matches() == 0 and db.num_inlier_matches() == 0
+    db.close()
+
+
+def test_colmap_mode_colmap_then_verify(base, db_copy):
+    _, mv, _, r, _ = base
+    a, b = mv.names[0], mv.names[1]
+    with ColmapSink(db_copy, geometry="colmap") as sink:
+        sink.write(b, a, r.pairs[:, ::-1], None)
+        assert sink.done_pairs() == {frozenset((a, b))}
+        assert sink.verify({"min_num_inliers": 15}) == 1
+        assert sink.verify() == 0  # nothing left without a geometry
+    db = pycolmap.Database.open(str(db_copy))
+    i1, i2 = db.read_image_with_name(a).image_id, db.read_image_with_name(b).image_id
+    assert np.array_equal(db.read_matches(i1, i2).astype(np.int64), r.pairs)
+    tvg = db.read_two_view_geometry(i1, i2)
+    assert int(tvg.config) in (2, 3, 4, 5, 6) and len(tvg.inlier_matches) > 30
+    db.close()
+    with ColmapSink(db_copy, geometry="none") as sink, pytest.raises(ConfigError):
+        sink.verify()
+
+
+def test_colmap_bad_writes(base, db_copy):
+    _, mv, _, r, g = base
+    a, b = mv.names[0], mv.names[1]
+    with ColmapSink(db_copy) as sink:
+        with pytest.raises(InputError, match="not in COLMAP database"):
+            sink.write(a, "ghost.png", r.pairs, None, g)
+        with pytest.raises(InputError, match="out of range"):
+            sink.write(a, b, r.pairs + 10_000, None, g)
+        with pytest.raises(InputError, match="inliers"):
+            sink.write(a, b, r.pairs[:-1], None, g)
+        with pytest.raises(InputError, match="self-pair"):
+            sink.write(a, a, r.pairs, None, g)
+    with pytest.raises(ConfigError):
+        ColmapSink(db_copy, geometry="maybe")
+    with pytest.raises(DatabaseError, match="not found"):
+        ColmapSink(db_copy.with_name("missing.db"))
+
+
+def _run(code: str, *, user: int | None = None) -> subprocess.CompletedProcess:
+    prelude = (f"import os, sys; sys.path.insert(0, {os.path.abspath(SRC)!r})\n"
+               "import guidedmatch.collection, guidedmatch.validation, guidedmatch.errors\n")
+    if user is not None:  # imports done as root (the interpreter may live where the user cannot read)
+        prelude += f"os.setgid({user}); os.setuid({user})\n"
+    return subprocess.run([sys.executable, "-c", prelude + textwrap.dedent(code)], capture_output=True, text=True,
+                          timeout=120)
+
+
+def test_lock_refuses_second_process(db_copy):
+    code = f"""
+        from guidedmatch.collection.sinks import ColmapSink
+        from guidedmatch.errors import DatabaseBusyError
+        try:
+            ColmapSink({str(db_copy)!r})
+        except DatabaseBusyError as e:
+            print("BUSY", e)
+        else:
+            print("ACQUIRED")
+    """
+    with ColmapSink(db_copy):
+        out = _run(code)
+        assert out.stdout.startswith("BUSY") and f"pid {os.getpid()}" in out.stdout, out.stderr[-2000:]
+        with pytest.raises(DatabaseBusyError):  # a second sink in the same process too
+            ColmapSink(db_copy)
+    assert _run(code).stdout.startswith("ACQUIRED")  # released on close
+
+
+def test_read_only_database(db_copy, tmp_path):
+    code = f"""
+        from guidedmatch.collection.sinks import ColmapSink
+        from guidedmatch.errors import OutputError
+        try:
+            ColmapSink({{path!r}})
+        except OutputError as e:
+            print("REFUSED", e)
+        else:
+            print("OPENED")
+    """
+    if os.geteuid() == 0:  # root ignores file modes: check as an unprivileged user in a world-readable folder
+        import tempfile
+
+        folder = tempfile.mkdtemp(prefix="gm-ro-", dir="/tmp")
+        try:
+            os.chmod(folder, 0o755)
+            path = os.path.join(folder, "db.db")
+            shutil.copy(db_copy, path)
+            os.chmod(path, 0o444)
+            out = _run(code.replace("{path!r}", repr(path)), user=65534)
+            assert out.stdout.startswith("REFUSED") and "read-only" in out.stdout, out.stdout + out.stderr[-2000:]
+            os.chmod(path, 0o666)
+            os.chmod(folder, 0o555)
+            out = _run(code.replace("{path!r}", repr(path)), user=65534)
+            assert out.stdout.startswith("REFUSED") and "folder" in out.stdout, out.stdout + out.stderr[-2000:]
+        finally:
+            os.chmod(folder, 0o755)
+            shutil.rmtree(folder)
+    else:
+        os.chmod(db_copy, 0o444)
+        with pytest.raises(OutputError, match="read-only"):
+            ColmapSink(db_copy)
+
+
+# ---------------------------------------------------------------------------------------------------- hloc
+def _hloc_get_matches(path, name0, name1):
+    """hloc's reader (hloc/utils/io.py get_matches), restated: find either order, keep entries != -1."""
+    with h5py.File(path, "r") as fh:
+        for key, rev in ((names_to_pair(name0, name1), False), (names_to_pair(name1, name0), True)):
+            if key in fh:
+                m, s = fh[key]["matches0"][()], fh[key]["matching_scores0"][()]
+                break
+        else:
+            raise KeyError((name0, name1))
+    idx = np.nonzero(m != -1)[0]
+    pairs = np.stack([idx, m[idx]], -1)
+    return (pairs[:, ::-1] if rev else pairs), s[idx], m.dtype, len(m)
+
+
+def _random_matches(rng, n1, n2, m):
+    i1 = rng.choice(n1, size=m, replace=False)
+    i2 = rng.choice(n2, size=m, replace=False)
+    order = np.argsort(i1)
+    return np.c_[i1[order], i2[order]].astype(np.int64), rng.uniform(0, 1, m).astype(np.float32)
+
+
+def test_h5_round_trip_and_hloc_layout(tmp_path):
+    rng = np.random.default_rng(0)
+    nf = {"a.jpg": 50, "seq/b.jpg": 40_000, "c.jpg": 30}  # > 32,767 keypoints: needs int32
+    written = {}
+    with H5MatchesSink(tmp_path / "m.h5", nf, flush_every=2) as sink:
+        for (x, y) in (("a.jpg", "seq/b.jpg"), ("seq/b.jpg", "c.jpg"), ("c.jpg", "a.jpg")):
+            p, s = _random_matches(rng, nf[x], nf[y], 20)
+            if y == "seq/b.jpg":
+                p[0, 1] = 39_999
+            sink.write(x, y, p, s)
+            written[(x, y)] = (p, s)
+        assert len(sink.done_pairs()) == 3
+    assert not (tmp_path / "m.h5.parts").exists()
+    with h5py.File(tmp_path / "m.h5") as fh:
+        assert "a.jpg/seq-b.jpg" in fh and "seq-b.jpg/c.jpg" in fh  # hloc's names_to_pair keys
+    for (x, y), (p, s) in written.items():
+        got, gs, dtype, length = _hloc_get_matches(tmp_path / "m.h5", y, x)  # asked the other way round
+        assert dtype == np.int32 and length == nf[x]
+        assert np.array_equal(got[np.argsort(got[:, 1])], p[:, ::-1][np.argsort(p[:, 0])])
+        assert np.allclose(np.sort(gs), np.sort(s))
+    assert int(_hloc_get_matches(tmp_path / "m.h5", "a.jpg", "seq/b.jpg")[0][:, 1].max()) >= 32_768
+
+
+def test_h5_resume_after_crash(tmp_path):
+    rng = np.random.default_rng(1)
+    nf = {f"{i}.png": 100 for i in range(6)}
+    names = list(nf)
+    sink = H5MatchesSink(tmp_path / "m.h5", nf, flush_every=2)
+    for k in range(3):  # two flushed in a segment, the third only buffered
+        sink.write(names[k], names[k + 1], *_random_matches(rng, 100, 100, 10))
+    sink._lock.release()  # "crash": no close, no merge
+    sink._closed = True
+    assert not (tmp_path / "m.h5").exists()
+    with H5MatchesSink(tmp_path / "m.h5", nf) as again:
+        assert again.done_pairs() == {frozenset(names[0:2]), frozenset(names[1:3])}
+        assert again.done_pairs([(names[2], names[1]), (names[4], names[5])]) == {frozenset(names[1:3])}
+        p, s = _random_matches(rng, 100, 100, 10)
+        again.write(names[3], names[2], p, s)
+        again.write(names[1], names[0], p, s)  # the other order of a stored pair: replaces it
+    with h5py.File(tmp_path / "m.h5") as fh:
+        keys = set()
+        fh.visititems(lambda n, o: keys.add(n) if isinstance(o, h5py.Group) and "matches0" in o else None)
+    assert keys == {names_to_pair(names[1], names[2]), names_to_pair(names[3], names[2]),
+                    names_to_pair(names[1], names[0])}
+    got, _, _, _ = _hloc_get_matches(tmp_path / "m.h5", names[1], names[0])
+    assert np.array_equal(got[np.argsort(got[:, 0])], p[np.argsort(p[:, 0])])
+
+
+def test_h5_lock_and_bad_inputs(tmp_path):
+    nf = {"a": 10, "b": 10}
+    with H5MatchesSink(tmp_path / "m.h5", nf) as sink:
+        with pytest.raises(DatabaseBusyError, match="another process"):
+            H5MatchesSink(tmp_path / "m.h5", nf)
+        with pytest.raises(InputError, match="not in the feature source"):
+            sink.write("a", "zzz", np.zeros((0, 2), np.int64), None)
+        with pytest.raises(InputError, match="one match per feature"):
+            sink.write("a", "b", np.array([[1, 2], [1, 3]]), None)
+        with pytest.raises(InputError, match="out of range"):
+            sink.write("a", "b", np.array([[1, 10]]), None)
+    (tmp_path / "x.h5").write_text("not hdf5")
+    with pytest.raises(DatabaseError, match="not an HDF5"):
+        H5MatchesSink(tmp_path / "x.h5")
+    with H5MatchesSink(tmp_path / "free.h5") as sink:  # without a source: matches0 ends at the last match
+        sink.write("a", "b", np.array([[3, 1]]), np.array([0.5]))
+        assert sink.report["matches0_length"].startswith("last")
+    assert _hloc_get_matches(tmp_path / "free.h5", "a", "b")[3] == 4
+
+
+def test_h5_sink_from_source(base, tmp_path):
+    _, mv, src, r, _ = base
+    a, b = mv.names[0], mv.names[1]
+    with H5MatchesSink(tmp_path / "m.h5", src) as sink:
+        sink.write(a, b, r.pairs, 1.0 / (1.0 + r.distances))
+    got, _, _, length = _hloc_get_matches(tmp_path / "m.h5", a, b)
+    assert length == src.num_features(a) and np.array_equal(got, r.pairs[np.argsort(r.pairs[:, 0])])
+    assert isinstance(src, ColmapSource)
+
+
+def _synthetic_db(path, n_images=24, n_kp=200):
+    db = pycolmap.Database.open(str(path))
+    cid = db.write_camera(pycolmap.Camera.create_from_model_name(0, "PINHOLE", 100.0, 64, 48))
+    rng = np.random.default_rng(0)
+    for k in range(n_images):
+        iid = db.write_image(pycolmap.Image(name=f"im{k:02d}.png", camera_id=cid))
+        db.write_keypoints(iid, rng.uniform(0, 48, (n_kp, 2)).astype(np.float32))
+        db.write_descriptors(iid, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
+                                                              rng.integers(0, 255, (n_kp, 128), dtype=np.uint8)))
+    db.close()
+
+
+def test_colmap_sink_survives_kill_9(tmp_path):
+    """kill -9 while a process writes pair after pair: every stored pair has both rows, consistent; resume works."""
+    import signal
+
+    path = tmp_path / "db.db"
+    _synthetic_db(path)
+    code = f"""
+import numpy as np
+from guidedmatch.collection.pairs import exhaustive_pairs
+from guidedmatch.collection.sinks import ColmapSink
+from guidedmatch.geometry import TwoViewGeometry
+names = [f"im{{k:02d}}.png" for k in range(24)]
+rng = np.random.default_rng(1)
+with ColmapSink({str(path)!r}) as sink:
+    for k, (a, b) in enumerate(exhaustive_pairs(names).pairs[::-1]):
+        m = np.c_[rng.permutation(200)[:150], rng.permutation(200)[:150]]
+        inl = rng.random(150) < 0.5
+        g = TwoViewGeometry("verified", "F", rng.normal(size=(3, 3)), None, inl, int(inl.sum()), 150, "x")
+        sink.write(a, b, m, None, g)
+        print(k, flush=True)
+"""
+    proc = subprocess.Popen([sys.executable, "-c", f"import sys; sys.path.insert(0, {os.path.abspath(SRC)!r})\n"
+                             + code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        for _ in range(40):  # let it store ~40 pairs, then kill it mid-stream
+            proc.stdout.readline()
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    db = pycolmap.Database.open(str(path))
+    match_ids = set(db.read_num_matches()[0])
+    geo_ids = set(db.read_two_view_geometry_num_inliers()[0])
+    assert match_ids == geo_ids and len(match_ids) >= 40
+    for pid in match_ids:
+        i1, i2 = pycolmap.pair_id_to_image_pair(pid)
+        m = {tuple(r) for r in db.read_matches(i1, i2)}
+        inl = db.read_two_view_geometry(i1, i2).inlier_matches
+        assert len(m) == 150 and {tuple(r) for r in inl} <= m and len(inl) > 0
+    db.close()
+    with ColmapSink(path) as sink:
+        assert len(sink.done_pairs()) == len(match_ids)
+
+
+def test_mapper_runs_on_our_geometry_without_verification(tmp_path):
+    """Rendered collection -> our database -> matches + our two-view geometries -> pycolmap.incremental_mapping
+    registers every view of the connected sequence; pairs without overlap get no inliers."""
+    from guidedmatch.collection.pairs import exhaustive_pairs
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(seed=1)
+    write_views(mv, tmp_path / "img")
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", progress=False)
+    with ColmapSink(tmp_path / "db.db") as sink:
+        for a, b in exhaustive_pairs(src.names()):
+            fa, fb = src.load(a), src.load(b)
+            r = match(fa, fb)
+            g = two_view_geometry(fa.keypoints[r.pairs[:, 0]], fb.keypoints[r.pairs[:, 1]], fa.image_size,
+                                  fb.image_size)
+            sink.write(a, b, r.pairs, r.distances, g)
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    with_inliers = {frozenset(map(int, pycolmap.pair_id_to_image_pair(p)))
+                    for p in db.read_two_view_geometry_num_inliers()[0]}
+    ids = {im.name: im.image_id for im in db.read_all_images()}
+    db.close()
+    for i, j in mv.non_overlapping_pairs():
+        assert frozenset((ids[mv.names[i]], ids[mv.names[j]])) not in with_inliers
+    recs = pycolmap.incremental_mapping(tmp_path / "db.db", tmp_path / "img", tmp_path / "sparse")
+    assert len(recs) == 1
+    rec = next(iter(recs.values()))
+    registered = {im.name for im in rec.images.values() if im.has_pose}
+    assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), m=st.integers(0, 120), reverse=st.booleans(), model=st.sampled_from("FH"))
+def test_colmap_rows_property(tmp_path_factory, seed, m, reverse, model):
+    """Random matches / inliers / models written in either order read back in COLMAP's canonical form."""
+    path = tmp_path_factory.mktemp("prop") / "db.db"
+    _synthetic_db(path, n_images=3, n_kp=150)
+    rng = np.random.default_rng(seed)
+    pairs = np.c_[rng.permutation(150)[:m], rng.permutation(150)[:m]].astype(np.int64)  # (im00, im02)
+    inl = rng.random(m) < 0.6
+    F, H = rng.normal(size=(3, 3)), rng.normal(size=(3, 3)) + 3 * np.eye(3)
+    g = TwoViewGeometry("verified", model, F if model == "F" else None, H, inl, int(inl.sum()), m, "x")
+    with ColmapSink(path) as sink:
+        if reverse:
+            sink.write("im02.png", "im00.png", pairs[:, ::-1], None, _reversed(g))
+        else:
+            sink.write("im00.png", "im02.png", pairs, None, g)
+    db = pycolmap.Database.open(str(path))
+    i1, i2 = db.read_image_with_name("im00.png").image_id, db.read_image_with_name("im02.png").image_id
+    assert np.array_equal(db.read_matches(i1, i2).astype(np.int64).reshape(-1, 2), pairs)
+    tvg = db.read_two_view_geometry(i1, i2)
+    db.close()
+    assert int(tvg.config) == (3 if model == "F" else 6)
+    assert np.array_equal(tvg.inlier_matches.astype(np.int64).reshape(-1, 2), pairs[inl])
+    Fc, Hc = colmap_pixel_geometry(g.F, g.H)
+    assert _scaled_equal(tvg.H, Hc, 1e-6)
+    assert (tvg.F is None) == (model == "H") and (model == "H" or _scaled_equal(tvg.F, Fc, 1e-6))
+
+
+@settings(max_examples=25, deadline=None)
+@given(n1=st.integers(1, 300), n2=st.integers(1, 300), frac=st.floats(0, 1), seed=st.integers(0, 2**31))
+def test_h5_rows_property(tmp_path_factory, n1, n2, frac, seed):
+    rng = np.random.default_rng(seed)
+    m = int(frac * min(n1, n2))
+    p, s = _random_matches(rng, n1, n2, m)
+    path = tmp_path_factory.mktemp("h5prop") / "m.h5"
+    with H5MatchesSink(path, {"x/1.jpg": n1, "y.jpg": n2}) as sink:
+        sink.write("x/1.jpg", "y.jpg", p, s)
+    got, gs, dtype, length = _hloc_get_matches(path, "x/1.jpg", "y.jpg")
+    assert length == n1 and dtype == np.int32
+    assert np.array_equal(got, p) and np.array_equal(gs, s)
