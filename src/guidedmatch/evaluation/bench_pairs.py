@@ -233,21 +233,25 @@ def run_pair(name, f1, f2, gt, *, repeats, config, ivf1, ivf2, prep1=None, prep2
 
 
 def warm_up(f1, f2, config) -> None:
-    """One untimed call of every method on small feature sets: Numba compilation, thread pools, first-call costs."""
+    """Untimed calls before timing: the peers on small subsets (thread pools, first-call costs) and our modes on the
+    full pair, prepared when the prepared-image API exists (Numba compiles per code path and argument types, and a
+    matcher may take another path at full size than on a subset)."""
     from ..geometry import two_view_geometry
     from ..matcher import match
     from . import peers
 
     a, b = strongest(f1, 1500), strongest(f2, 1500)
-    for mode in OURS:
-        r = match(a, b, mode, config)
+    r = match(a, b, "bf", config)
     two_view_geometry(a.keypoints[r.pairs[:, 0]], b.keypoints[r.pairs[:, 1]], a.image_size, b.image_size)
     peers.match_faiss(a, b)
     peers.match_faiss_ivf(a, b)
     peers.match_opencv_flann(a, b, **FLANN)
     prep = _prepare_fn()
-    if prep is not None:
-        match(prep(a), prep(b), "so+epi+ia", config)
+    for x, y in ((a, b), (f1, f2)):
+        if prep is not None:
+            x, y = prep(x), prep(y)
+        for mode in OURS:
+            match(x, y, mode, config)
 
 
 # --------------------------------------------------------------------------------------------- one feature set
