@@ -570,8 +570,12 @@ def write_report(out: Path, res: dict, command: str) -> Path:
                f"### Totals over the {len(scene)} {SCENE} pairs", "", totals_table(totals(scene)), ""]
         if s.get("prepared"):
             tot_prep = sum(v.get("prepare_s", 0.0) for v in s["images"].values())
+            lazy = sum(float(_field(r["methods"]["so+epi+ia"].get("timing") or {}, "index_build_s", 0.0) or 0.0)
+                       for r in s["rows"])
             md += [f"Our modes were given prepared images (`guidedmatch.prepared.prepare`, once per image): "
-                   f"{tot_prep:.2f} s of preparation in total, not included above.", ""]
+                   f"{tot_prep:.2f} s spent in `prepare` itself, not included above; work a prepared image does lazily "
+                   f"on its first match is inside that match's time (so+epi+ia `timing.index_build_s` summed over all "
+                   f"pairs: {lazy:.2f} s).", ""]
         if unrel:
             md += [f"### Totals over the {len(unrel)} unrelated pairs ({SCENE} image vs an Unsplash photo, long side "
                    f"{s['features']['unrelated_long_side']} px, its {s['features'].get('unrelated_photo_cap', 0):,} "
