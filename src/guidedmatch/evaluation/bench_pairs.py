@@ -645,6 +645,21 @@ def plot(out: Path, res: dict) -> Path | None:
 
 
 # --------------------------------------------------------------------------------------------- main
+def _verdict_note(res: dict) -> None:
+    """Set ``verdict_source_ours`` and ``verdict_note``: where our modes' verdicts came from."""
+    srcs = {m["verdict_source"] for s in res["sets"].values() for r in s["rows"]
+            for k, m in r["methods"].items() if k in OURS}
+    res["verdict_source_ours"] = sorted(srcs)
+    if "post-hoc" in srcs:
+        res["verdict_note"] = ("this matcher returns no `result.geometry`: the verdicts of our modes were computed "
+                               "after timing by `guidedmatch.geometry.two_view_geometry` on the returned matches "
+                               "(for guided modes biased towards 'verified': their matches were selected with their own F). "
+                               "Peers' verdicts are always post-hoc.")
+    else:
+        res["verdict_note"] = ("our modes' verdicts are the matcher's own `result.geometry`; peers' verdicts are "
+                               "post-hoc `two_view_geometry` fits on their returned matches.")
+
+
 def main(args) -> int:
     from ..datasets import data_root
     from ..matcher import MatcherConfig
@@ -669,8 +684,18 @@ def main(args) -> int:
     which = getattr(args, "features", "both") or "both"
     sets = FEATURE_SETS if which == "both" else (() if which == "none" else (which,))
     config = MatcherConfig()
+    command = ("guidedmatch bench pairs" + (" --quick" if quick else "") + f" --features {which}"
+               + (" --dense" if getattr(args, "dense", False) else "") + (" --oxford" if getattr(args, "oxford", False) else "")
+               + f" --repeats {repeats} --out {args.out}")
     t0 = time.perf_counter()
-    res: dict[str, Any] = dict(meta=run_metadata(seed=getattr(args, "seed", 0)), quick=quick, repeats=repeats,
+
+    def checkpoint():  # after each stage: JSON + report + plot of what is finished, marked partial
+        _verdict_note(res)
+        res["elapsed_s"] = time.perf_counter() - t0
+        write_json(out / "pairs.json", {**res, "partial": True})
+        write_report(out, {**res, "figure": plot(out, res)}, command + " (partial: still running)")
+
+    res: dict[str, Any] = dict(command=command, meta=run_metadata(seed=getattr(args, "seed", 0)), quick=quick, repeats=repeats,
                                machine_note=MACHINE_NOTE, config=dataclasses.asdict(config),
                                sets={})
     for name in sets:
@@ -680,31 +705,17 @@ def main(args) -> int:
         s["totals"] = dict(scene=totals(scene), unrelated=totals(unrel))
         s["targets"] = targets(name, scene, unrel)
         res["sets"][name] = s
-        write_json(out / "pairs.json", {**res, "partial": True})  # checkpoint: a late crash keeps the finished sets
+        checkpoint()  # a late crash keeps the finished sets
     if getattr(args, "dense", False):
         res["dense"] = run_dense(root, out, quick=quick, repeats=repeats, config=config)
-        write_json(out / "pairs.json", {**res, "partial": True})
+        checkpoint()
     if getattr(args, "oxford", False):
         res["oxford"] = run_oxford(root, quick=quick, repeats=repeats, config=config)
     res["partial"] = False
-    srcs = {m["verdict_source"] for s in res["sets"].values() for r in s["rows"]
-            for k, m in r["methods"].items() if k in OURS}
-    res["verdict_source_ours"] = sorted(srcs)
-    if "post-hoc" in srcs:
-        res["verdict_note"] = ("this matcher returns no `result.geometry`: the verdicts of our modes were computed "
-                               "after timing by `guidedmatch.geometry.two_view_geometry` on the returned matches "
-                               "(for guided modes biased towards 'verified': their matches were selected with their own F). "
-                               "Peers' verdicts are always post-hoc.")
-    else:
-        res["verdict_note"] = ("our modes' verdicts are the matcher's own `result.geometry`; peers' verdicts are "
-                               "post-hoc `two_view_geometry` fits on their returned matches.")
+    _verdict_note(res)
     res["elapsed_s"] = time.perf_counter() - t0
     fig = plot(out, res)
     res["figure"] = str(fig) if fig else None
-    command = ("guidedmatch bench pairs" + (" --quick" if quick else "") + f" --features {which}"
-               + (" --dense" if getattr(args, "dense", False) else "") + (" --oxford" if getattr(args, "oxford", False) else "")
-               + f" --repeats {repeats} --out {args.out}")
-    res["command"] = command
     write_json(out / "pairs.json", res)
     rep = write_report(out, res, command)
     print(f"wrote {rep}, {out / 'pairs.json'}" + (f" and {fig}" if fig else "") + f" in {res['elapsed_s'] / 60:.1f} min")
