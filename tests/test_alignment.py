@@ -384,3 +384,101 @@ def test_khat_matches_scipy_reference(seed, n):
     # slow O(N^2) definition
     d = np.sign(x1[:, None] - x1[None, :]) * np.sign(x2[:, None] - x2[None, :])
     assert khat(x1, x2) == pytest.approx((d < 0).sum() / (n * (n - 1)), abs=1e-12)
+
+
+# ------------------------------------------------------------------------- validation (issue 11)
+from guidedmatch.alignment import check_alignment, safe_alignment  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+
+def _local_scale_fd(H, pts, eps=1e-3):
+    """Slow reference: sqrt|det J| and sign(det J) from central differences of apply_homography, per point."""
+    out, sign = [], []
+    for p in pts:
+        J = np.empty((2, 2))
+        for k in range(2):
+            d = np.zeros(2)
+            d[k] = eps
+            J[:, k] = (apply_homography(H, (p + d)[None])[0] - apply_homography(H, (p - d)[None])[0]) / (2 * eps)
+        det = np.linalg.det(J)
+        out.append(np.sqrt(abs(det)))
+        sign.append(np.sign(det))
+    return np.array(out), np.array(sign)
+
+
+def test_check_alignment_accepts_rotations_about_the_centre():
+    pts = np.random.default_rng(0).uniform(0, 639, (100, 2))
+    K = intrinsics(800.0, SIZE)
+    for a in (0.0, 30.0, 179.0, -120.0):
+        H = K @ rot_z(np.radians(a)) @ np.linalg.inv(K)
+        chk = check_alignment(H, pts, SIZE)
+        assert chk and chk.reason == "ok"
+        assert chk.scale_range == pytest.approx((1.0, 1.0), abs=1e-9) and chk.horizon_px == np.inf
+
+
+@pytest.mark.parametrize("H, words", [
+    (np.diag([-1.0, 1.0, 1.0]), "orientation not kept"),                      # mirror
+    (np.array([[1.0, 0, 0], [0, 1, 0], [-1 / 300.0, 0, 1]]), "orientation"),  # line x = 300 at infinity crosses
+    (np.diag([10.0, 10.0, 1.0]), "local scale out of range"),                 # 10x zoom
+    (np.diag([0.1, 0.1, 1.0]), "local scale out of range"),
+    (np.array([[2.0, 0, 0], [0, 2, 0], [0.004, 0, 1]]), "near the line at infinity"),  # scale ok, horizon 250 px
+    (np.full((3, 3), np.nan), "finite"),
+    (np.zeros((3, 3)), "finite"),  # normalising a zero matrix gives NaN
+    (np.array([[1.0, 2, 0], [2, 4, 0], [0, 0, 1]]), "singular"),
+])
+def test_check_alignment_rejects_degenerate(H, words):
+    pts = np.random.default_rng(1).uniform(0, 639, (100, 2)) * [1, 0.75]
+    with np.errstate(all="ignore"):
+        chk = check_alignment(H, pts, SIZE)
+    assert not chk and words in chk.reason, chk.reason
+
+
+@HSET
+@given(H=hnp.arrays(np.float64, (3, 3), elements=st.floats(-2, 2)),
+       pts=hnp.arrays(np.float64, (20, 2), elements=st.floats(0, 479)))
+def test_check_alignment_against_finite_differences(H, pts):
+    """scale_range and the orientation test agree with a numerical Jacobian at every keypoint."""
+    H = H + np.diag([300.0, 300.0, 1.0])  # mostly well-conditioned, perspective terms up to 2 / 300 px
+    H[2, :2] /= 300.0
+    with np.errstate(all="ignore"):
+        chk = check_alignment(H, pts, SIZE, scale_bounds=(1e-9, 1e9), horizon_diagonals=0.0)
+        w = pts @ H[2, :2] + H[2, 2]
+    assume(np.all(np.abs(w) > 1e-2))
+    s, sign = _local_scale_fd(H, pts)
+    assume(np.all(s > 1e-6))
+    assert (bool(chk) or "singular" in chk.reason) == (np.all(sign > 0) and "singular" not in chk.reason)
+    if chk:
+        assert chk.scale_range == pytest.approx((s.min(), s.max()), rel=1e-4)
+
+
+def test_safe_alignment_double_turn_falls_back_to_inplane():
+    """The printed approach (c) turns camera 2 by up to 2 theta: at a 78 deg viewing angle the keypoints end up
+    behind the turned camera (mirrored frame); the chain falls back to the in-plane twist and says why."""
+    s = sphere_pair(3, noise=0.0)
+    for kw in ({"K1": s.K1, "K2": s.K2}, {}):  # true intrinsics, and Bougnoux (degenerate here: f = w + h)
+        al = safe_alignment(s.F, s.x1, s.x2, SIZE, SIZE, "c", s.x2, **kw)
+        assert al.requested == "c" and al.approach == "c_inplane" and al.fell_back
+        assert al.fallbacks[0][0] == "c" and "orientation not kept" in al.fallbacks[0][1]
+        assert al.check and al.check.scale_range == pytest.approx((1.0, 1.0), abs=1e-9)
+        assert not check_alignment(alignment_homographies(al.result.R, al.result.K1, al.result.K2, "c")[1], s.x2, SIZE)
+
+
+@HSET
+@given(seed=st.integers(0, 10_000), approach=st.sampled_from(APPROACHES), bougnoux=st.booleans())
+def test_safe_alignment_result_always_passes_its_check(seed, approach, bougnoux):
+    s = sphere_pair(seed, noise=1.0) if seed % 2 else general_pair(seed, noise=1.0)
+    kw = {} if bougnoux else {"K1": s.K1, "K2": s.K2}
+    al = safe_alignment(s.F, s.x1n, s.x2n, SIZE, SIZE, approach, s.x2n, s.x1n, **kw)
+    assert al.approach in (approach, "c_inplane", "none")
+    assert check_alignment(al.H2, s.x2n, SIZE)
+    chain = list(dict.fromkeys([approach, "c_inplane", "none"]))  # the order links are tried in
+    assert [a for a, _ in al.fallbacks] == chain[:chain.index(al.approach)]  # every link before the used one
+    if al.approach == "c_inplane":  # in-plane rotation about the principal point: never rejected
+        assert al.check.scale_range == pytest.approx((1.0, 1.0), abs=1e-9)
+
+
+def test_safe_alignment_none_when_every_link_fails():
+    s = general_pair(0)
+    al = safe_alignment(np.full((3, 3), np.nan), s.x1, s.x2, SIZE, SIZE, "c", s.x2)
+    assert al.approach == "none" and np.array_equal(al.H2, np.eye(3)) and al.result is None
+    assert [a for a, _ in al.fallbacks] == ["c", "c_inplane"]

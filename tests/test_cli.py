@@ -77,13 +77,15 @@ def test_demo_small(tmp_path, capsys):
 
 def test_guided_mode_with_config_plot_and_regions(image_files, tmp_path, capsys):
     a, b = str(image_files / "a.png"), str(image_files / "b.png")
+    # small test images: auto_bf would replace guidance by brute force (below 2000 features)
     rc = main(["match", a, b, "--mode", "so+epi+ia", "--config", "update_every=60", "--config", "num_updates=2",
-               "--plot", str(tmp_path / "regions.png"), "--show-regions", "-o", str(tmp_path / "m.npz")])
+               "--config", "auto_bf=False", "--plot", str(tmp_path / "regions.png"), "--show-regions", "-o", str(tmp_path / "m.npz")])
     assert rc == 0, capsys.readouterr().err
     assert (tmp_path / "regions.png").stat().st_size > 10_000
     d = read_matches(tmp_path / "m.npz")
     assert d["stats"]["method"] == "so+epi+ia" and d["stats"]["num_model_updates"] == 2
-    assert main(["match", a, b, "--mode", "epi", "--config", "update_every=60", "--plot", str(tmp_path / "mf.png")]) == 0
+    assert main(["match", a, b, "--mode", "epi", "--config", "update_every=60", "--config", "auto_bf=False",
+                 "--plot", str(tmp_path / "mf.png")]) == 0
     assert (tmp_path / "mf.png").exists()
 
 

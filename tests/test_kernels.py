@@ -560,3 +560,65 @@ def test_band_edge_point_exact_for_integer_descriptors():
                             np.array([-np.inf]), np.array([np.inf]),
                             kernels.build_strips(P, 24.0, 0), kernels.build_strips(P, 24.0, 1))
     assert r[4][0] == 1 and r[0][0] == 0
+
+
+# --------------------------------------------------------------------------- work bound (issue 11)
+def _occupied_strips_crossed(S, pts2, line, band, lo, hi):
+    """Reference bound: the occupied strips of ``S`` that hold a point whose x lies in [lo, hi] and whose other
+    coordinate lies within the band's extent over the strip -- i.e. strips the band really crosses inside the
+    points' bounding box -- plus one strip either side for the cell-edge slack."""
+    sid = np.minimum(((pts2[:, 0] - S.u0) // S.width).astype(np.int64), S.nstrips - 1)  # column strips (axis 0)
+    occupied = np.unique(sid)
+    a, b, c = line
+    # a strip counts when the band's y-range over the strip's x-interval meets the points' y-extent
+    ky0, ky1 = S.k0, S.k0 + S.ncells * S.cell
+    xs0 = S.u0 + occupied * S.width
+    ya, yb = -(a * xs0 + c) / b, -(a * (xs0 + S.width) + c) / b
+    m = band / abs(b)
+    meets = (np.maximum(ya, yb) + m >= ky0) & (np.minimum(ya, yb) - m <= ky1) & (xs0 + S.width >= lo) & (xs0 <= hi)
+    return int(meets.sum()) + 2
+
+
+@pytest.mark.parametrize("kind", ["u8", "f32"])
+def test_guided_top2_extreme_homography_work_bounded(kind):
+    """Aligned image-2 points spread over ~1e6 px by a near-degenerate homography (the printed approach (c) on a
+    wide pair): results equal the reference and each query visits only occupied strips its band crosses, not
+    the ~N strips the spread's coordinate range makes."""
+    rng = np.random.default_rng(11)
+    n2, nq = 1500, 200
+    img = rng.uniform(0, [3072, 2048], (n2, 2))
+    H = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1 / 3100.0, 0.0, 1.0]])  # x -> 3100 sent to infinity
+    q = np.c_[img, np.ones(n2)] @ H.T
+    pts2 = q[:, :2] / q[:, 2:]
+    assert np.ptp(pts2[:, 0]) > 1e5  # the frame spreads over a coordinate range far beyond the image
+    desc1 = make_desc(kind, rng, nq, 16, small=False)
+    desc2 = make_desc(kind, rng, n2, 16, small=False)
+    # near-horizontal lines through random points, slopes up to 0.2; half with an x-range, half unbounded
+    p = pts2[rng.integers(0, n2, nq)]
+    slope = rng.uniform(-0.2, 0.2, nq)
+    lines = np.c_[-slope, np.ones(nq), slope * p[:, 0] - p[:, 1]]
+    lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
+    xlo = np.where(np.arange(nq) % 2 == 0, -np.inf, p[:, 0] - 5e4)
+    xhi = np.where(np.arange(nq) % 2 == 0, np.inf, p[:, 0] + 5e4)
+    band = 5.0
+    cols = kernels.build_strips(pts2, 40.0, axis=0)
+    rows = kernels.build_strips(pts2, 40.0, axis=1)
+    queries = np.arange(nq)
+    run_and_check(queries, desc1, desc2, kind, pts2, lines, True, band, xlo, xhi, cols, rows)
+    res = kernels.guided_top2(queries, kernel_desc(kind, desc1), kernel_desc(kind, desc2), lines, True, band,
+                              xlo, xhi, cols, rows, return_visits=True)
+    nvisit = res[5]
+    assert cols.nstrips > 1000  # the strip table itself is large (N-sized) ...
+    bound = [_occupied_strips_crossed(cols, pts2, lines[k], band, xlo[k], xhi[k]) for k in range(nq)]
+    assert np.all(nvisit <= bound)  # ... but each query walks only the occupied strips its band crosses
+    assert nvisit.sum() < 0.1 * nq * cols.nstrips
+
+
+def test_first_nonempty():
+    pts = np.array([[0.0, 0.0], [0.5, 1.0], [10.0, 0.0], [30.0, 0.0]])
+    S = kernels.build_strips(pts, 5.0, axis=0, cell=5.0)
+    first = kernels.first_nonempty(S)
+    occupied = {int((x - S.u0) // S.width) for x in pts[:, 0]}
+    for s in range(S.nstrips + 1):
+        want = min([o for o in occupied if o >= s], default=S.nstrips)
+        assert first[s] == want

@@ -7,7 +7,8 @@ from guidedmatch.bruteforce import match_bruteforce
 from guidedmatch.features import Features, detect
 from guidedmatch.matcher import MODES, MatcherConfig, match
 
-FAST = MatcherConfig(update_every=60, num_updates=2)  # small scene: fewer correspondences per update
+# small scene: fewer correspondences per update; auto_bf off (below 2000 features guidance is replaced by BF)
+FAST = MatcherConfig(update_every=60, num_updates=2, auto_bf=False)
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +51,7 @@ def test_bf_mode_equals_bruteforce_module(scene_and_features):
 
 def test_final_pass_pairs_lie_in_reference_candidate_sets_and_counts_are_exact(scene_and_features):
     s, f1, f2 = scene_and_features
-    cfg = FAST.replace(recheck=False)
+    cfg = FAST.replace(recheck=False, unguided_index=False)  # exact unguided start: N2 comparisons per query
     r, models = match(f1, f2, "so+epi+ia", cfg, return_models=True)
     assert models is not None and models.so is not None and models.F is not None
     final = models.final_queries
@@ -112,7 +113,7 @@ def test_unusable_so_model_falls_back_and_reports(scene_and_features, monkeypatc
 
 def test_too_few_correspondences_reports_missing_updates(scene_and_features):
     _, f1, f2 = scene_and_features
-    r = match(f1, f2, "so+epi+ia", MatcherConfig(update_every=100000, one_to_one=False))
+    r = match(f1, f2, "so+epi+ia", MatcherConfig(update_every=100000, one_to_one=False, start="paper", auto_bf=False))
     assert r.stats.num_model_updates == 0
     assert any(f.what == "updates" for f in r.stats.fallbacks)
     b = match(f1, f2, "bf")
@@ -129,10 +130,14 @@ def _feats(n, seed=0, size=(100, 100)):
 def test_empty_and_tiny_inputs_return_cleanly(n1, n2, mode):
     r = match(_feats(n1, 1), _feats(n2, 2), mode)
     assert r.pairs.shape == (len(r), 2) and len(r) <= min(n1, n2)
+    assert r.geometry is not None and r.geometry.inliers.shape == (len(r),) and not r.geometry
     # too few features for any model: every mode degrades to brute force and says so
     assert r.stats.comparisons == n1 * n2
     if mode != "bf" and n1 and n2:
-        assert any(f.what == "updates" for f in r.stats.fallbacks)
+        assert "auto_bf" in r.stats.details  # chosen up front (auto_bf) ...
+        g = match(_feats(n1, 1), _feats(n2, 2), mode, MatcherConfig(auto_bf=False))
+        assert g.stats.comparisons == n1 * n2  # ... or found out by the guided run
+        assert any(f.what in ("no_model", "updates") for f in g.stats.fallbacks)
 
 
 def test_identical_images(scene_and_features):
@@ -228,6 +233,149 @@ def test_band_only_rescue_matches_outside_the_window_only_in_the_band(scene_and_
     dfin = drop.flags["phase"] == drop.stats.num_model_updates
     inside_d, _, _, _ = admissible_x_ranges(dm.so, dm.pts1a[drop.pairs[dfin, 0], 0])
     assert inside_d.all()
+
+
+# ------------------------------------------------------------------------------ issue 11: verdict, start, prepared
+from guidedmatch.prepared import prepare  # noqa: E402
+
+GUIDED = MatcherConfig(auto_bf=False)  # the rendered test scenes have < 2000 features: keep guidance on
+
+
+@pytest.fixture(scope="module")
+def other_scene_features():
+    from guidedmatch.testing.scenes import make_scene
+
+    s = make_scene((800, 600), roll_deg=10.0, seed=9)  # different textures and cameras: shares nothing with seed 5
+    return s, detect(s.image1), detect(s.image2)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_every_result_has_a_geometry_over_its_pairs(scene_and_features, mode):
+    s, f1, f2 = scene_and_features
+    r = match(f1, f2, mode, GUIDED)
+    g = r.geometry
+    assert g is not None and g.verdict == "verified" and g.model == "F"
+    assert g.inliers.shape == (len(r),) and g.num_inliers == int(g.inliers.sum()) and g.num_matches == len(r)
+    ok = _true(s, f1, f2, r)
+    assert ok[g.inliers].mean() > 0.9 and g.inliers[ok].mean() > 0.9  # the mask separates true from false
+    if mode != "bf":
+        checks = r.stats.details["verdict_checks"]
+        assert checks and checks[-1]["verdict"] == "verified"
+        # the model guided only after the verdict on unguided evidence: every check ran on phase-0 matches
+        assert r.stats.updates[0].num_correspondences == checks[-1]["evidence"]
+
+
+@pytest.mark.parametrize("mode", ["so+epi+ia", "epi", "bf"])
+def test_unrelated_scenes_are_no_overlap_with_early_exit(scene_and_features, other_scene_features, mode):
+    _, f1, _ = scene_and_features
+    _, _, g2 = other_scene_features
+    r = match(f1, g2, mode, GUIDED)
+    assert r.geometry.verdict == "no-overlap" and not r.geometry and r.geometry.num_inliers == 0
+    if mode != "bf":
+        assert r.stats.num_model_updates == 0  # no model ever guided
+        whats = [f.what for f in r.stats.fallbacks]
+        assert "early_exit" in whats and r.stats.details["early_exit"]
+        assert r.stats.comparison_ratio <= 0.03  # the exit comes at the budget (2.5 % of N1*N2 with the index)
+        assert sum(r.stats.phase_queries) < len(f1)
+        # unverified="drop" (default): no matches are vouched for; "keep": the unguided ones are returned
+        assert len(r) == 0 and r.stats.details["dropped_unverified"] > 0
+        assert any(f.what == "unverified" for f in r.stats.fallbacks)
+        k = match(f1, g2, mode, GUIDED.replace(unverified="keep"))
+        assert len(k) == r.stats.details["dropped_unverified"] and k.geometry.verdict == "no-overlap"
+        assert k.geometry.inliers.shape == (len(k),) and not k.geometry.inliers.any()
+    else:
+        assert len(r) > 0  # the baseline keeps its nearest neighbours (with the verdict)
+
+
+def test_pure_rotation_scene_is_H():
+    from guidedmatch.testing.scenes import make_scene
+
+    s = make_scene((800, 600), roll_deg=20.0, seed=4, baseline=0.0)  # camera 2 only rotated: a homography
+    f1, f2 = detect(s.image1), detect(s.image2)
+    for mode in ("so+epi+ia", "bf"):
+        r = match(f1, f2, mode, GUIDED)
+        assert r.geometry.verdict == "verified" and r.geometry.model == "H", mode
+        assert r.geometry.H is not None and r.geometry.num_inliers > 0.8 * len(r)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_prepared_images_give_the_same_matches(scene_and_features, mode):
+    _, f1, f2 = scene_and_features
+    fresh = match(f1, f2, mode, GUIDED)
+    p1, p2 = prepare(f1), prepare(f2)
+    for a, b in ((p1, p2), (p1, f2), (f1, p2), (p1, p2)):  # either side, and reused a second time
+        r = match(a, b, mode, GUIDED)
+        np.testing.assert_array_equal(r.pairs, fresh.pairs)
+        np.testing.assert_array_equal(r.distances, fresh.distances)
+        assert r.stats.comparisons == fresh.stats.comparisons
+        assert r.geometry.verdict == fresh.geometry.verdict
+        np.testing.assert_array_equal(r.geometry.inliers, fresh.geometry.inliers)
+    if mode != "bf":
+        assert p2._index is not None  # the index was built once and kept on the prepared image
+        assert match(p1, p2, mode, GUIDED).stats.timing.index_build_s == 0.0
+
+
+def test_demo_scene_never_exits_early():
+    """The demo scene (make_scene((1600, 1200), roll_deg=30, seed=0)) overlaps: verified on the first checks, no
+    early exit, in every guided mode."""
+    from guidedmatch.testing.scenes import make_scene
+
+    s = make_scene((1600, 1200), roll_deg=30.0, seed=0)
+    f1, f2 = detect(s.image1), detect(s.image2)
+    n_bf = _true(s, f1, f2, match(f1, f2, "bf")).sum()
+    for mode in ("so+epi+ia", "so+epi", "so", "epi"):
+        r = match(f1, f2, mode)
+        assert r.stats.details["early_exit"] is None and r.geometry.verdict == "verified", mode
+        assert not any(f.what in ("early_exit", "no_model") for f in r.stats.fallbacks)
+        assert r.stats.num_model_updates == 3 and sum(r.stats.phase_queries) == len(f1)
+        if "epi" in mode:  # (spatial order alone keeps fewer true matches than BF on this scene, gate or not)
+            assert _true(s, f1, f2, r).sum() >= 0.95 * n_bf
+
+
+def test_binary_small_n_chooses_bruteforce_and_says_so(scene_and_features):
+    s, _, _ = scene_and_features
+    f1, f2 = detect(s.image1, "orb", 3000), detect(s.image2, "orb", 3000)
+    r = match(f1, f2, "so+epi+ia")  # default auto_bf: sqrt(N1 N2) < 20000 binary features
+    assert r.stats.method == "bf" and r.stats.details["requested_mode"] == "so+epi+ia"
+    assert "binary" in r.stats.details["auto_bf"] and r.stats.comparisons == len(f1) * len(f2)
+    assert r.geometry.verdict == "verified" and r.geometry.inliers.shape == (len(r),)
+    # one-to-one of the requested guided mode is kept, so the result type and filters match a guided run
+    assert len(np.unique(r.pairs[:, 1])) == len(r)
+    g = match(f1, f2, "so+epi+ia", MatcherConfig(bf_below_binary=0))  # forced guided: no auto_bf entry
+    assert g.stats.method == "so+epi+ia" and "auto_bf" not in g.stats.details and g.stats.metric == "hamming"
+    assert g.stats.details["unguided_search"] == "popcount"
+    sift = match(*scene_and_features[1:], "so+epi+ia")  # float, ~1800 features < bf_below_float = 2000
+    assert "float" in sift.stats.details["auto_bf"]
+
+
+def test_rejected_alignment_falls_back_and_reports(scene_and_features, monkeypatch):
+    import guidedmatch.alignment as al
+
+    _, f1, f2 = scene_and_features
+    real = al.check_alignment
+
+    def reject_c(H, pts, size, **kw):  # reject every homography that is not an in-plane rotation (scale != 1)
+        chk = real(H, pts, size, **kw)
+        if chk and abs(chk.scale_range[1] - chk.scale_range[0]) > 1e-9:
+            return al.AlignmentCheck(False, "forced for the test", chk.scale_range, chk.horizon_px)
+        return chk
+
+    monkeypatch.setattr(al, "check_alignment", reject_c)
+    r = match(f1, f2, "so+epi+ia", GUIDED.replace(alignment="c"))
+    assert all(u.alignment == "c_inplane" for u in r.stats.updates)
+    fb = [f for f in r.stats.fallbacks if f.what == "alignment"]
+    assert fb and "'c' rejected: forced for the test" in fb[0].reason and "c_inplane" in fb[0].reason
+    assert r.geometry.verdict == "verified"
+
+
+def test_paper_config_keeps_printed_alignment_and_ungated_start(scene_and_features):
+    _, f1, f2 = scene_and_features
+    c = MatcherConfig.paper(auto_bf=False, update_every=60, num_updates=2)
+    assert c.alignment == "c" and c.start == "paper" and MatcherConfig().alignment == "c_inplane"
+    r = match(f1, f2, "so+epi+ia", c)
+    assert r.stats.details["unguided_search"] == "gemm" and r.stats.updates[0].num_correspondences >= 60
+    assert r.stats.phase_comparisons[0] == r.stats.phase_queries[0] * len(f2)
+    assert r.geometry.verdict == "verified"  # reported, from the unguided correspondences
 
 
 # ------------------------------------------------------------------ slow references of the steps
@@ -340,7 +488,7 @@ def _in_final_region_reference(models, i, j):
 
 def test_recheck_drops_exactly_the_early_matches_outside_the_final_region(scene_and_features):
     _, f1, f2 = scene_and_features
-    cfg = MatcherConfig(one_to_one=False)  # 3 updates of 200: early matches of phases 0, 1, 2 to re-check
+    cfg = MatcherConfig(one_to_one=False, auto_bf=False)  # 3 updates of 200: early matches of phases 0, 1, 2 to re-check
     off, models = match(f1, f2, "so+epi+ia", cfg.replace(recheck=False), return_models=True)
     on = match(f1, f2, "so+epi+ia", cfg)
     last = off.stats.num_model_updates
@@ -372,7 +520,7 @@ def test_forced_f_failure_is_reported_and_matching_continues(scene_and_features,
     assert r.stats.F is None and r.stats.alignment_H2 is None
     assert all(u.F_inliers is None and u.so_usable for u in r.stats.updates)
     assert r.flags["in_band"].all() and len(r) > 50  # no band, spatial order only
-    e = match(f1, f2, "epi", FAST)  # no model at all in epi: every feature against all of image 2
+    e = match(f1, f2, "epi", FAST.replace(unguided_index=False))  # no model in epi: all features against all of image 2
     assert e.stats.comparisons == len(f1) * len(f2)
     assert {f.reason for f in e.stats.fallbacks if f.what == "fundamental"} == {
         "F estimation failed: forced for the test; no epipolar guidance"}
@@ -400,10 +548,13 @@ def test_hand_fixture_ratio_one_to_one_and_mutual():
     assert match(f1, f2, "bf", {"ratio": None}).pairs.tolist() == [[0, 0], [1, 0], [2, 1], [3, 2]]
     assert match(f1, f2, "bf", {"max_distance": 1.5}).pairs.tolist() == [[0, 0], [3, 2]]
     # too few features for a model: a guided mode matches like brute force, says so, and filters one-to-one
-    g = match(f1, f2, "so+epi+ia")
+    g = match(f1, f2, "so+epi+ia", {"auto_bf": False})
     assert g.pairs.tolist() == [[0, 0], [3, 2]] and g.stats.comparisons == 12
+    assert g.geometry.verdict == "too-few-matches"  # (kept: only "no-overlap" results are emptied)
     # ... and two matches carry no order structure: the per-match probabilities are NaN, and reported
-    assert [f.what for f in g.stats.fallbacks] == ["updates", "so_prob"] and np.isnan(g.flags["so_prob"]).all()
+    assert [f.what for f in g.stats.fallbacks] == ["no_model", "so_prob"] and np.isnan(g.flags["so_prob"]).all()
+    a = match(f1, f2, "so+epi+ia")  # default: auto_bf answers with brute force, reported
+    assert a.pairs.tolist() == [[0, 0], [3, 2]] and "auto_bf" in a.stats.details
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -420,7 +571,7 @@ def test_known_geometry_unique_descriptors_every_mode_finds_the_permutation(mode
     f1 = Features.from_arrays(s.x1, desc, s.size1)
     f2 = Features.from_arrays(s.x2[perm], desc[perm], s.size2)
     # sparse points: many bands hold only the true match, so accept single candidates here
-    cfg = MatcherConfig(update_every=40, num_updates=2, min_model_matches=16, single_candidate="accept")
+    cfg = MatcherConfig(update_every=40, num_updates=2, min_model_matches=16, single_candidate="accept", auto_bf=False)
     r = match(f1, f2, mode, cfg)
     inv = np.argsort(perm)
     assert r.pairs[:, 1].tolist() == inv[r.pairs[:, 0]].tolist() and (r.distances == 0).all()

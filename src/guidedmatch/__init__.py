@@ -24,15 +24,18 @@ _EXPORTS = {
     "MatchResult": "results", "MatchStats": "results", "ModelUpdate": "results", "Fallback": "results",
     "PhaseTimes": "results", "CandidateStats": "results", "Failure": "results",
     "match_bruteforce": "bruteforce",
+    "prepare": "prepared", "PreparedImage": "prepared", "PreparedConfig": "prepared",
     # estimators
     "estimate_fundamental": "epipolar",
     "fit_spatial_order": "spatial_order", "SpatialOrderConfig": "spatial_order",
-    "align_from_fundamental": "alignment",
+    "align_from_fundamental": "alignment", "check_alignment": "alignment", "safe_alignment": "alignment",
     "two_view_geometry": "geometry", "TwoViewGeometry": "geometry", "VerdictConfig": "geometry",
     # collections (COLMAP / hloc)
     "open_source": "collection", "images_to_database": "collection", "exhaustive_pairs": "collection",
     "sequential_pairs": "collection", "pairs_from_spec": "collection", "ColmapSink": "collection",
     "H5MatchesSink": "collection",
+    "match_collection": "collection.engine", "CollectionConfig": "collection.engine",
+    "CollectionReport": "collection.engine",
     # errors
     "GuidedMatchError": "errors", "ConfigError": "errors", "InputError": "errors", "ImageReadError": "errors",
     "OutputError": "errors", "DatabaseError": "errors", "DatabaseBusyError": "errors", "MemoryLimitError": "errors",

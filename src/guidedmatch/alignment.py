@@ -46,6 +46,7 @@ input.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -70,6 +71,10 @@ __all__ = [
     "align_from_fundamental",
     "apply_homography",
     "warp_to_canvas",
+    "AlignmentCheck",
+    "check_alignment",
+    "SafeAlignment",
+    "safe_alignment",
 ]
 
 #: Alignment approaches: the paper's four (``"a"``-``"d"``) plus ``"c_inplane"`` (the intended approach 3).
@@ -532,3 +537,160 @@ def warp_to_canvas(image: np.ndarray, H: np.ndarray, max_scale: float = 4.0,
     warped = cv2.warpPerspective(image, Hc, (max(W, 1), max(Hh, 1)), flags=interpolation,
                                  borderMode=cv2.BORDER_CONSTANT)
     return warped, Hc
+
+
+# ------------------------------------------------------------------------------------- validation
+@dataclass(frozen=True)
+class AlignmentCheck:
+    """Whether an alignment homography is safe to match in (truthy when it is), :func:`check_alignment`.
+
+    Attributes:
+        ok: the homography passed every test.
+        reason: ``"ok"`` or one sentence naming the failed test and its numbers.
+        scale_range: ``(min, max)`` local scale ``sqrt|det J|`` over the keypoints (how the homography stretches
+            distances there; the epipolar band of ``band_px`` aligned pixels is ``band_px / scale`` original pixels).
+        horizon_px: distance (pixels) from the nearest keypoint to the line the homography sends to infinity
+            (``inf`` for an affine map).
+    """
+
+    ok: bool
+    reason: str
+    scale_range: tuple[float, float]
+    horizon_px: float
+
+    def __bool__(self) -> bool:  # noqa: D105
+        return bool(self.ok)
+
+
+#: Default bounds of :func:`check_alignment`: local scale in ``[1/4, 4]`` (a band of 5 aligned px then spans
+#: 1.25..20 original px) and every keypoint at least half the image diagonal away from the line sent to infinity.
+SCALE_BOUNDS = (0.25, 4.0)
+HORIZON_DIAGONALS = 0.5
+
+
+def check_alignment(H, pts, size, *, scale_bounds: tuple[float, float] = SCALE_BOUNDS,
+                    horizon_diagonals: float = HORIZON_DIAGONALS) -> AlignmentCheck:
+    """Validate an alignment homography over the keypoints it will move (Teng & Dong §III-E; issue 11).
+
+    The matcher compares aligned x-ranks and measures the epipolar band in aligned pixels, so a homography is
+    only safe when, over the keypoints ``pts (N, 2)`` (pixels) of the image it maps (size ``(w, h)``):
+
+    1. it is finite and non-singular;
+    2. it keeps the orientation everywhere: ``det J(x) = det(H) / w(x)^3 > 0`` at every keypoint, with
+       ``w(x) = h_3 . (x, y, 1)`` (a mirrored or folded frame reverses x-order) -- this also means all ``w``
+       have one sign, i.e. the line sent to infinity (``w = 0``) does not pass between keypoints;
+    3. the local scale ``sqrt|det J|`` lies within ``scale_bounds`` at every keypoint (a band of ``b``
+       aligned pixels is ``b / scale`` original pixels wide; an exploding scale makes the aligned frame
+       span millions of pixels);
+    4. no keypoint lies within ``horizon_diagonals`` image diagonals of the line sent to infinity.
+
+    Returns:
+        :class:`AlignmentCheck` (truthy when safe); never raises on degenerate input.
+
+    >>> import numpy as np
+    >>> pts = np.array([[0.0, 0.0], [639.0, 479.0], [320.0, 240.0]])
+    >>> bool(check_alignment(np.eye(3), pts, (640, 480)))
+    True
+    >>> tilt = np.array([[1.0, 0, 0], [0, 1.0, 0], [0.003, 0, 1.0]])  # sends the line x = -333 to infinity
+    >>> check_alignment(tilt, pts, (640, 480)).reason.split(":")[0]
+    'local scale out of range'
+    """
+    H = np.asarray(H, np.float64)
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    nan2 = (float("nan"), float("nan"))
+    if H.shape != (3, 3) or not np.isfinite(H).all() or not np.linalg.norm(H) > 0:
+        return AlignmentCheck(False, "homography is not a finite non-zero 3x3 matrix", nan2, float("nan"))
+    Hn = H / np.linalg.norm(H)
+    w_img, h_img = (float(v) for v in size)
+    diag = math.hypot(w_img, h_img)
+    T = np.array([[1.0 / diag, 0.0, 0.0], [0.0, 1.0 / diag, 0.0], [0.0, 0.0, 1.0]])
+    if abs(np.linalg.det(T @ Hn @ np.linalg.inv(T) / np.linalg.norm(T @ Hn @ np.linalg.inv(T)))) <= 1e-12:
+        return AlignmentCheck(False, "homography is singular", nan2, float("nan"))
+    if len(pts) == 0:
+        return AlignmentCheck(True, "ok", (1.0, 1.0), float("inf"))
+    w = pts @ Hn[2, :2] + Hn[2, 2]
+    detH = float(np.linalg.det(Hn))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        detj = detH / w**3
+        scale = np.sqrt(np.abs(detj))
+    sr = (float(np.min(scale)), float(np.max(scale)))
+    a = float(np.hypot(Hn[2, 0], Hn[2, 1]))
+    horizon = float(np.min(np.abs(w)) / a) if a > 0 else float("inf")
+    flipped = int(np.sum(~(detj > 0)))
+    if flipped:
+        return AlignmentCheck(False, f"orientation not kept: det J <= 0 at {flipped} of {len(pts)} keypoints "
+                              "(the frame is mirrored or the line sent to infinity crosses the keypoints)",
+                              sr, horizon)
+    lo, hi = scale_bounds
+    if not (sr[0] >= lo and sr[1] <= hi):
+        return AlignmentCheck(False, f"local scale out of range: sqrt|det J| spans {sr[0]:.3g}..{sr[1]:.3g} over "
+                              f"the keypoints (allowed {lo:g}..{hi:g})", sr, horizon)
+    if horizon < horizon_diagonals * diag:
+        return AlignmentCheck(False, f"keypoint near the line at infinity: {horizon:.0f} px away (at least "
+                              f"{horizon_diagonals:g} image diagonals = {horizon_diagonals * diag:.0f} px required)",
+                              sr, horizon)
+    return AlignmentCheck(True, "ok", sr, horizon)
+
+
+@dataclass(frozen=True)
+class SafeAlignment:
+    """The alignment the matcher uses after validation (:func:`safe_alignment`).
+
+    Attributes:
+        H1, H2: ``(3, 3)`` homographies of image-1 / image-2 keypoints (identity when none is used).
+        approach: the approach actually used: one of :data:`APPROACHES` or ``"none"``.
+        requested: the approach asked for.
+        fallbacks: ``[(approach, reason), ...]`` every approach tried and rejected, in order.
+        result: the :class:`AlignmentResult` of the approach used (None for ``"none"``).
+        check: the :class:`AlignmentCheck` of the used ``H2`` (over image-2 keypoints).
+    """
+
+    H1: np.ndarray
+    H2: np.ndarray
+    approach: str
+    requested: str
+    fallbacks: tuple
+    result: AlignmentResult | None
+    check: AlignmentCheck
+
+    @property
+    def fell_back(self) -> bool:
+        return self.approach != self.requested
+
+
+def safe_alignment(F, x1, x2, size1, size2, approach: str, pts2, pts1=None, *, K1=None, K2=None,
+                   scale_bounds: tuple[float, float] = SCALE_BOUNDS,
+                   horizon_diagonals: float = HORIZON_DIAGONALS) -> SafeAlignment:
+    """Alignment from ``F`` with validation and a reported fallback chain: ``approach`` -> ``"c_inplane"``
+    (in-plane rotation of image 2 about its principal point only: scale 1, nothing at infinity) -> ``"none"``.
+
+    Every candidate's ``H2`` is checked with :func:`check_alignment` over the image-2 keypoints ``pts2`` (and
+    ``H1`` over ``pts1`` for approach ``"d"``); a failed estimation or a failed check moves to the next link and
+    is recorded in ``fallbacks``. Args as :func:`align_from_fundamental`.
+
+    >>> import numpy as np
+    >>> from guidedmatch.testing.twoview import general_pair
+    >>> s = general_pair(0)
+    >>> al = safe_alignment(s.F, s.x1, s.x2, (640, 480), (640, 480), "c_inplane", s.x2)
+    >>> al.approach, al.fallbacks
+    ('c_inplane', ())
+    """
+    pts2 = np.asarray(pts2, np.float64).reshape(-1, 2)
+    chain = [approach] + [a for a in ("c_inplane",) if a != approach]
+    fallbacks = []
+    for ap in chain:
+        res = align_from_fundamental(F, x1, x2, size1, size2, ap, K1=K1, K2=K2)
+        if not res:
+            fallbacks.append((ap, f"alignment failed: {res.reason}"))
+            continue
+        chk = check_alignment(res.H2, pts2, size2, scale_bounds=scale_bounds, horizon_diagonals=horizon_diagonals)
+        if chk and ap == "d" and pts1 is not None:
+            c1 = check_alignment(res.H1, pts1, size1, scale_bounds=scale_bounds, horizon_diagonals=horizon_diagonals)
+            if not c1:
+                chk = AlignmentCheck(False, "image-1 homography: " + c1.reason, c1.scale_range, c1.horizon_px)
+        if chk:
+            return SafeAlignment(np.asarray(res.H1, float), np.asarray(res.H2, float), ap, approach,
+                                 tuple(fallbacks), res, chk)
+        fallbacks.append((ap, chk.reason))
+    return SafeAlignment(np.eye(3), np.eye(3), "none", approach, tuple(fallbacks), None,
+                         AlignmentCheck(True, "ok", (1.0, 1.0), float("inf")))

@@ -309,7 +309,22 @@ def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1,
     return b1, j1, b2, j2, cnt
 
 
-def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows):
+@njit(cache=True)
+def first_nonempty(S):
+    """``first[s]`` = the first strip ``>= s`` of strip index ``S`` (:func:`build_strips`) holding a point
+    (``ns`` when none): ``(ns + 1,) int64``. The candidate kernel jumps over empty strips with it, so its walk
+    costs at most one step per occupied strip, however far a transformed frame spreads the points."""
+    ns = S.nstrips
+    nk = S.ncells
+    offsets = S.offsets
+    first = np.empty(ns + 1, np.int64)
+    first[ns] = ns
+    for s in range(ns - 1, -1, -1):
+        first[s] = s if offsets[(s + 1) * nk] > offsets[s * nk] else first[s + 1]
+    return first
+
+
+def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows, fcols, frows):
     """Best two candidates of each query among the image-2 features of its search region.
 
     The region of query ``q`` (image-1 feature ``queries[q]``) is ``{j : xlo[q] <= x_j <= xhi[q]}`` (the
@@ -321,8 +336,14 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     band's extent; the predicate above is then tested exactly per scanned point.
 
     ``desc1``/``desc2``: float32 rows (squared L2), uint8 byte-valued rows (exact squared L2) or uint64 words
-    (Hamming). Returns ``(i1, d1, i2, d2, ncand)`` with original image-2 indices, raw ``desc_dist`` values, and
-    ``ncand[q]`` = the exact number of descriptor distances evaluated for query ``q``.
+    (Hamming). Returns ``(i1, d1, i2, d2, ncand, nvisit)`` with original image-2 indices, raw ``desc_dist``
+    values, ``ncand[q]`` = the exact number of descriptor distances evaluated for query ``q`` and ``nvisit[q]`` =
+    the strips it visited.
+
+    Work bound (issue 11): each query's walk is clipped to the part of its band inside the bounding box of the
+    indexed points and jumps over empty strips (``fcols``/``frows`` = :func:`first_nonempty` of ``cols``/``rows``),
+    so a query visits at most the occupied strips its band crosses -- never a number of strips set by the
+    coordinate range of a (badly) transformed frame.
     """
     nq = queries.shape[0]
     i1 = np.full(nq, -1, np.int64)
@@ -330,6 +351,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     d1 = np.full(nq, np.inf, np.float32)
     d2 = np.full(nq, np.inf, np.float32)
     ncand = np.zeros(nq, np.int64)
+    nvisit = np.zeros(nq, np.int64)
     w = cols.width
     gx0 = cols.u0
     gx1 = gx0 + cols.nstrips * w
@@ -350,6 +372,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
         j1 = -1
         j2 = -1
         cnt = 0
+        vis = 0
         xa = max(lo, gx0)
         xb = min(hi, gx1)
         if xa > xb or cols.items.shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
@@ -357,9 +380,24 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
         if not use_band or abs(b) >= abs(a):
             # vertical strips sorted by y; the band's y-extent over the strip's x-interval bounds the scan
             m = band / abs(b) if use_band else 0.0
+            if use_band and abs(a) > 1e-300:
+                # x where the band meets the points' y-extent [ky0, ky1]: a x + c in [-b y - band, -b y + band]
+                ky0 = cols.k0
+                ky1 = ky0 + cols.ncells * cols.cell
+                e1 = -b * ky0
+                e2 = -b * ky1
+                t1 = (min(e1, e2) - band - c) / a
+                t2 = (max(e1, e2) + band - c) / a
+                pad = eps * (1.0 + abs(t1) + abs(t2))
+                xa = max(xa, min(t1, t2) - pad)
+                xb = min(xb, max(t1, t2) + pad)
+                if xa > xb:
+                    continue
             s_lo = int((xa - gx0) // w)
             s_hi = min(int((xb - gx0) // w), cols.nstrips - 1)
-            for s in range(s_lo, s_hi + 1):
+            s = fcols[s_lo]
+            while s <= s_hi:
+                vis += 1
                 if use_band:
                     u0 = max(gx0 + s * w, xa)
                     u1 = min(gx0 + (s + 1) * w, xb)
@@ -374,23 +412,31 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                     kmax = np.inf
                 b1, j1, b2, j2, cnt = _scan_strip(cols, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi,
                                                   b1, j1, b2, j2, cnt)
+                s = fcols[s + 1]
         else:
             # horizontal strips sorted by x; rows limited to where the band can meet x in [lo, hi]
             m = band / abs(a)
             ry0 = gy0
             ry1 = gy1
-            if abs(b) > 1e-12 and np.isfinite(lo) and np.isfinite(hi):
-                t1 = (-a * lo - c - band) / b
-                t2 = (-a * lo - c + band) / b
-                t3 = (-a * hi - c - band) / b
-                t4 = (-a * hi - c + band) / b
+            # rows where the band can meet x in [lo, hi] clipped to the points' x-extent [kx0, kx1]
+            xl = max(lo, rows.k0)
+            xr = min(hi, rows.k0 + rows.ncells * rows.cell)
+            if xl > xr:
+                continue
+            if abs(b) > 1e-12:
+                t1 = (-a * xl - c - band) / b
+                t2 = (-a * xl - c + band) / b
+                t3 = (-a * xr - c - band) / b
+                t4 = (-a * xr - c + band) / b
                 ry0 = max(gy0, min(min(t1, t2), min(t3, t4)) - eps * (1.0 + abs(gy0) + abs(gy1)))
                 ry1 = min(gy1, max(max(t1, t2), max(t3, t4)) + eps * (1.0 + abs(gy0) + abs(gy1)))
             if ry0 > ry1:
                 continue
             r_lo = max(0, int((ry0 - gy0) // wr))
             r_hi = min(rows.nstrips - 1, int((ry1 - gy0) // wr))
-            for r in range(r_lo, r_hi + 1):
+            r = frows[r_lo]
+            while r <= r_hi:
+                vis += 1
                 v0 = gy0 + r * wr
                 v1 = v0 + wr
                 xa2 = -(b * v0 + c) / a
@@ -399,16 +445,17 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 kmax = min(max(xa2, xb2) + m, hi)
                 kmin -= eps * (1.0 + abs(kmin))
                 kmax += eps * (1.0 + abs(kmax))
-                if kmin > kmax:
-                    continue
-                b1, j1, b2, j2, cnt = _scan_strip(rows, r, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi,
-                                                  b1, j1, b2, j2, cnt)
+                if kmin <= kmax:
+                    b1, j1, b2, j2, cnt = _scan_strip(rows, r, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi,
+                                                      b1, j1, b2, j2, cnt)
+                r = frows[r + 1]
         i1[q] = j1
         i2[q] = j2
         d1[q] = b1
         d2[q] = b2
         ncand[q] = cnt
-    return i1, d1, i2, d2, ncand
+        nvisit[q] = vis
+    return i1, d1, i2, d2, ncand, nvisit
 
 
 def _renamed(fn, name):
@@ -438,7 +485,7 @@ _guided_ser_fm = njit(parallel=False, cache=True, fastmath=_FASTMATH)(_renamed(_
 PARALLEL_MIN_QUERIES = 2048  # fewer queries run single-threaded
 
 
-def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows):
+def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows, *, return_visits: bool = False):
     queries = np.ascontiguousarray(queries, np.int64)
     lines = np.ascontiguousarray(lines, np.float64).reshape(-1, 3)
     if len(lines) != len(queries) or len(xlo) != len(queries) or len(xhi) != len(queries):
@@ -451,8 +498,10 @@ def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, ro
         kernel = _guided_par_fm if fm else _guided_par
     else:
         kernel = _guided_ser_fm if fm else _guided_ser
-    return kernel(queries, desc1, desc2, lines, bool(use_band), float(band), np.asarray(xlo, np.float64),
-                  np.asarray(xhi, np.float64), cols, rows)
+    out = kernel(queries, desc1, desc2, lines, bool(use_band), float(band), np.asarray(xlo, np.float64),
+                 np.asarray(xhi, np.float64), cols, rows, first_nonempty(cols), first_nonempty(rows))
+    return out if return_visits else out[:5]
 
 
-guided_top2.__doc__ = _guided_py.__doc__
+guided_top2.__doc__ = (_guided_py.__doc__ or "") + """
+    ``guided_top2(..., return_visits=True)`` also returns ``nvisit``; without it the first five arrays."""

@@ -6,21 +6,40 @@ Modes (:class:`~guidedmatch.config.Mode`)
 ``epi``         classic epipolar-guided matching: after the first models, candidates = epipolar band only.
 ``so``          spatial order only: candidates = admissible image-2 x-range (§III-C).
 ``so+epi``      x-range ∩ band (§III-C + §III-D).
-``so+epi+ia``   the same in coordinates aligned by the homography from F (§III-E, approach (c) by default).
+``so+epi+ia``   the same in coordinates aligned by the homography from F (§III-E; the in-plane twist ``c_inplane`` by
+                default, validated, see step 3).
+
+Either side of :func:`match` may be a :class:`~guidedmatch.prepared.PreparedImage` (per-image state reused across
+pairs: kernel-form descriptors, the approximate index of the unguided start); the matches are the same as with plain
+:class:`~guidedmatch.features.Features`. With ``auto_bf`` (default) a guided mode is replaced by brute force where
+guidance cannot win (fewer than ``bf_below_float`` / ``bf_below_binary`` features; said in ``stats.details``).
+Every result carries the two-view verdict ``result.geometry`` (:class:`~guidedmatch.geometry.TwoViewGeometry`:
+``verified`` F or H / ``no-overlap`` / ``too-few-matches``, inlier mask over ``result.pairs``).
 
 Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per step, in this order)
 -------------------------------------------------------------------------------------------------
 1. **Draw order** (§III-A, "Feature Grouping", :func:`draw_order`): image-1 features are put into ``num_groups``
    x-intervals and drawn round-robin (within a group strongest response first, else a seeded random order), so the
    first matches cover the whole image width.
-2. **Unguided phase** (§III-A): drawn features are matched in mini-batches of ``batch_size`` against all of image 2
-   (:class:`~guidedmatch.bruteforce.DenseKnn2`: GEMM in one single-threaded BLAS chunk per core, or popcount).
-3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): after every ``update_every`` (200) newly accepted
-   correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 times): F by robust
-   RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E), then the spatial-order model on aligned
-   x-coordinates (§III-B, §III-C). Batches are processed whole, so an update happens after the batch in which the
-   200th correspondence was accepted (the overshoot is < ``batch_size`` queries).
-4. **Guided phase**: between updates, batches are matched in their search regions under the current models.
+2. **Unguided start** (§III-A; the gate and the exit are beyond the paper, issue 11, :meth:`_GuidedRun.unguided_start`):
+   drawn features are matched in mini-batches against all of image 2 -- through the faiss IVF index of image 2
+   (:class:`~guidedmatch.prepared.UnguidedSearch`, ~2 sqrt(N2) + 4 cells per query), or exactly (GEMM / popcount;
+   binary descriptors, small images, ``unguided_index=False``). These correspondences are the *evidence*: no model
+   selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
+   :func:`~guidedmatch.geometry.two_view_geometry` decides whether they share a geometry beyond chance; the first
+   model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
+   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index)
+   without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are
+   not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after
+   ``update_every`` exact unguided correspondences, no gate, no exit.
+3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit, then after every ``update_every`` (200)
+   newly accepted correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 fits
+   in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E; validated over the
+   keypoints by :func:`~guidedmatch.alignment.safe_alignment` -- local scale, orientation, line at infinity -- with
+   the fallback requested approach -> ``c_inplane`` -> none, each rejection reported), then the spatial-order model
+   on aligned x-coordinates (§III-B, §III-C).
+4. **Guided phase**: between updates, batches are matched in their search regions under the current models; the
+   batch size follows the observed acceptance rate so the next update comes after about one batch.
 5. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized call of the
    Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the :class:`~guidedmatch.kernels.StripIndex`
    of the aligned image-2 points): features outside the overlap window ω* are dropped unmatched; each remaining
@@ -30,7 +49,9 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    final x-range and band and dropped when outside (the fix the paper suggests in §IV-C).
 7. **One-to-one** (beyond the paper, :func:`one_to_one`) and the optional **mutual check** (:func:`mutual_check`).
 8. **Result**: matches sorted by image-1 index, per-match flags (incl. the spatial-order probability within the final
-   match set, Talker Eq. 12) and a typed :class:`~guidedmatch.results.MatchStats`.
+   match set, Talker Eq. 12), a typed :class:`~guidedmatch.results.MatchStats` (``details``: ``unguided_search``,
+   ``verdict_checks``, ``early_exit``, ``unguided_comparisons``) and the verdict decided on the unguided evidence,
+   reported over the final matches (:func:`~guidedmatch.geometry.report_geometry`: inliers of the final F).
 
 Coordinates: the band is applied in the aligned frame, with ``F_a = H2^-T F H1^-1`` and the line normalized there
 ("the subsequent feature filtering is also performed according to the transformed coordinates", §III-E);
@@ -50,7 +71,6 @@ full check in every mode: ``(i, j)`` survives only if ``i`` is the nearest of *a
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -59,7 +79,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import kernels
-from .bruteforce import DenseKnn2, check_descriptors, knn2, match_bruteforce
+from .bruteforce import check_descriptors, knn2, match_bruteforce
 from .config import MODES, MatcherConfig, Mode
 from .epipolar import map_points
 from .features import as_features
@@ -99,37 +119,82 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     >>> res = match((xy, desc, (100, 100)), (xy[::-1], desc[::-1], (100, 100)), "so+epi+ia")
     >>> bool(np.all(res.pairs[:, 1] == 49 - res.pairs[:, 0])), len(res) == 50
     (True, True)
-    >>> res.stats.comparisons == 50 * 50   # too few features for a model: brute force, reported
+    >>> res.stats.comparisons == 50 * 50   # too few features for guidance to win: brute force, reported
     True
-    >>> res.stats.fallbacks[0].what
-    'updates'
+    >>> res.stats.details["auto_bf"].split(":")[0], res.geometry.verdict
+    ('brute force instead of guided matching', 'verified')
     """
+    from .prepared import PreparedImage, prepare
+
     mode = Mode.parse(mode)
     config = config_from(MatcherConfig, config)
-    f1, f2 = as_features(features1, "features1"), as_features(features2, "features2")
+    p1 = features1 if isinstance(features1, PreparedImage) else None
+    p2 = features2 if isinstance(features2, PreparedImage) else None
+    f1 = p1.features if p1 is not None else as_features(features1, "features1")
+    f2 = p2.features if p2 is not None else as_features(features2, "features2")
     d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors)
     with compile_monitor() as jit:  # a first call compiles Numba kernels: reported apart from time_s
-        run = None if not mode.guided else _GuidedRun(config, mode, f1, f2, d1, d2, binary)
-        res = _match_bf(config, f1, f2, d1, d2, binary) if run is None else run.run()
+        why = _bf_wins(config, len(d1), len(d2), binary) if mode.guided else None
+        run = None if not mode.guided or why else _GuidedRun(config, mode, p1 or prepare(f1), p2 or prepare(f2),
+                                                             d1, d2, binary)
+        res = _match_bf(config, f1, f2, d1, d2, binary, mode, why) if run is None else run.run()
     res = exclude_compile_time(res, jit.seconds)
     return (res, run.guidance if run is not None else None) if return_models else res
 
 
-def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary) -> MatchResult:
-    """Mode ``bf``: exact 2-NN over all of image 2, ratio / max-distance / mutual tests, then one-to-one if on."""
+def _bf_wins(c: MatcherConfig, n1: int, n2: int, binary: bool) -> str | None:
+    """Why brute force replaces a guided mode (``auto_bf``), or None.
+
+    Guidance has a fixed cost (three robust fits, the spatial-order model, the verdict checks) that brute force does
+    not pay; below a size it cannot win. Measured (CPU time, best of 3, Herz-Jesus-P8 pairs 0002-0003 / 0002-0005 /
+    0000-0005, guided with ``auto_bf=False``; ``/tmp/pairs/bintime2.py`` of the pairs helper), guided / BF:
+    SIFT 0.99 / 0.63 / 0.25 at 2000 features, 0.72 / 0.61 / 0.50 at 4000, <= 0.41 from 8000 on;
+    ORB 1.85 / 2.94 at 2000, 1.37 / 1.91 at 4000, 0.76 / 1.31 at 8000, 0.51 / 0.73 at 12000, 0.30 / 0.45 at 16000;
+    AKAZE 2.4-2.7 at 2000, 1.1-1.2 at 4000, 0.57-1.04 at 8000, 0.28 / 0.37 at 12000; BRISK 2.0-2.9 at 2000, 1.4-2.1
+    at 4000 (it has < 8000 features here). Hence BF below 2000 float and 12000 binary features.
+    """
+    if not c.auto_bf:
+        return None
+    size = (float(n1) * float(n2)) ** 0.5
+    limit = c.bf_below_binary if binary else c.bf_below_float
+    if size < limit:
+        kind = "binary" if binary else "float"
+        return (f"brute force instead of guided matching: sqrt(N1*N2) = {size:.0f} < bf_below_{kind} = {limit} "
+                f"({kind} descriptors), where guidance cannot win")
+    return None
+
+
+def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary, mode: Mode, auto_reason: str | None = None) -> MatchResult:
+    """Mode ``bf`` (or a guided mode replaced by brute force, ``auto_reason``): exact 2-NN over all of image 2,
+    ratio / max-distance / mutual tests, one-to-one if on for ``mode``, and the two-view verdict from one robust
+    fit on the matches (:func:`~guidedmatch.geometry.two_view_geometry`; nothing selected them by a model)."""
+    from .geometry import VerdictConfig, two_view_geometry
+
     t0 = time.perf_counter()
     res = match_bruteforce(d1, d2, ratio=c.ratio, mutual=c.mutual, max_distance=c.max_distance)
     pairs, dist = res.pairs, res.distances
     dropped = 0
-    if c.one_to_one_in(Mode.parse("bf")) and len(pairs):
+    if c.one_to_one_in(mode) and len(pairs):
         sel = one_to_one(pairs[:, 0], pairs[:, 1], dist)
         dropped = len(pairs) - len(sel)
         pairs, dist = pairs[sel], dist[sel]
+    t1 = time.perf_counter()
+    geometry = two_view_geometry(f1.keypoints[pairs[:, 0]], f2.keypoints[pairs[:, 1]], f1.image_size,
+                                 f2.image_size, VerdictConfig(seed=c.seed))
     n1, n2 = len(d1), len(d2)
+    details = dict(res.stats.details, verdict_s=time.perf_counter() - t1)
+    flags = default_flags(len(pairs))
+    fallbacks = []
+    if auto_reason:  # a guided mode answered by brute force: the guided modes' rule for unverified pairs applies
+        details.update(requested_mode=mode.name, auto_bf=auto_reason)
+        q, j, dist, flags, geometry, n_drop = _drop_unverified(
+            c, pairs[:, 0], pairs[:, 1], dist, flags, geometry, lambda w, r: fallbacks.append(Fallback(w, r)))
+        pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
+        details["dropped_unverified"] = n_drop
     stats = dataclasses.replace(res.stats, time_s=time.perf_counter() - t0, dropped_by_one_to_one=dropped,
                                 phase_queries=(n1,), phase_comparisons=(n1 * n2,), queries_matched_against=n1,
-                                config=c)
-    return MatchResult(pairs, dist, stats, default_flags(len(pairs)))
+                                config=c, details=details, fallbacks=tuple(res.stats.fallbacks) + tuple(fallbacks))
+    return MatchResult(pairs, dist, stats, flags, geometry)
 
 
 # ================================================================================================ §III-A draw order
@@ -326,18 +391,25 @@ class _Collected:
 class _GuidedRun:
     """State of one guided match (not public); :meth:`run` is the method in order."""
 
-    def __init__(self, config: MatcherConfig, mode: Mode, f1, f2, d1, d2, binary):
+    def __init__(self, config: MatcherConfig, mode: Mode, p1, p2, d1, d2, binary):
         self.c = config
         self.mode = mode
-        self.f1, self.f2 = f1, f2
+        self.p1, self.p2 = p1, p2  # guidedmatch.prepared.PreparedImage of each side
+        self.f1, self.f2 = p1.features, p2.features
         self.d1, self.d2, self.binary = d1, d2, binary
-        self.kdesc1 = kernels.pack_bits_u64(d1) if binary else d1
-        self.kdesc2 = kernels.pack_bits_u64(d2) if binary else d2
-        self.byte_exact = False
-        if not binary:  # byte-valued float descriptors (OpenCV SIFT): exact int32 L2 on uint8 copies in the kernel
-            u1, u2 = kernels.as_exact_uint8(d1), kernels.as_exact_uint8(d2)
-            if u1 is not None and u2 is not None:
-                self.kdesc1, self.kdesc2, self.byte_exact = u1, u2, True
+        # descriptors in the kernel's form, prepared once per image: packed words (binary); byte-valued float
+        # descriptors (OpenCV SIFT) as exact uint8 copies (int32 L2 in the kernel) when both sides are byte-valued
+        self.byte_exact = bool(p1.byte_exact and p2.byte_exact)
+        if binary or self.byte_exact:
+            self.kdesc1, self.kdesc2 = p1.kdesc, p2.kdesc
+        else:
+            self.kdesc1, self.kdesc2 = d1, d2
+        self.checks: list[dict] = []            # verdict checks of the unguided start
+        self.decision = None                    # the last TwoViewGeometry decided on unguided evidence
+        self.early_exit: str | None = None
+        self.unguided_search = None             # "ivf" | "gemm" | "popcount"
+        self.unguided_comparisons = 0
+        self.last_alignment = None              # SafeAlignment of the latest model fit (mode IA)
         self.fallbacks: list[Fallback] = []
         self.ncand: list[np.ndarray] = []
         self.timing = dict.fromkeys((f.name for f in dataclasses.fields(PhaseTimes)), 0.0)
@@ -395,48 +467,176 @@ class _GuidedRun:
         return draw_order(x, w, self.c.num_groups, key)
 
     def progressive_phase(self, order: np.ndarray, got: _Collected) -> tuple[GuidanceModels | None, np.ndarray]:
-        """Steps 2-4 (§III-A): mini-batches, unguided until the first models, guided after; refit the models after
-        every ``update_every`` new correspondences, ``num_updates`` times. Returns the last models and the queries
-        left for the final pass."""
+        """Steps 2-4 (§III-A): mini-batches, unguided until the first models (:meth:`unguided_start`), guided after;
+        refit the models after every ``update_every`` new correspondences, ``num_updates`` times. Returns the last
+        models and the queries left for the final pass (none after an early exit)."""
         c = self.c
-        models: GuidanceModels | None = None
-        since = total = ptr = 0
-        with contextlib.ExitStack() as stack:  # closes the unguided-phase searcher (restores BLAS threads)
-            dense = None
-            while ptr < len(order) and len(self.updates) < c.num_updates:
-                batch = order[ptr: ptr + c.batch_size]
-                ptr += len(batch)
-                t0 = time.perf_counter()
-                if models is not None and models.guided:
-                    acc = self.guided_batch(models, batch)
-                    self.timing["guided_progressive_s"] += time.perf_counter() - t0
-                else:
-                    if dense is None and not self.binary:
-                        dense = stack.enter_context(DenseKnn2(self.d2))
-                    acc = self.unguided_batch(batch, dense)
-                    self.timing["initial_bf_s"] += time.perf_counter() - t0
-                got.add(acc, len(self.updates))
-                since += len(acc.q)
-                total += len(acc.q)
-                if since >= c.update_every and total >= c.min_model_matches:
-                    since = 0
-                    models = self.fit_models(*got.pairs_so_far())
+        if c.num_updates == 0 or len(order) == 0:
+            return None, order
+        models, ptr = self.unguided_start(order, got)
+        if models is None:  # no verified evidence: nothing guides; early exit leaves the rest unmatched
+            if self.early_exit is None and ptr < len(order):
+                return None, order[ptr:]
+            return None, order[:0]
+        since = 0
+        total = sum(len(a.q) for a, _ in got.parts)
+        drawn = accepted = 0  # guided queries so far and their accepted matches (the acceptance rate)
+        while ptr < len(order) and len(self.updates) < c.num_updates:
+            # batches sized by the observed acceptance rate to reach the next update in about one batch (at least
+            # batch_size): few kernel calls on low-overlap pairs, the same update points on rich ones
+            rate = (accepted + 1.0) / (drawn + 1.0) if drawn else 1.0
+            bs = int(min(max(c.batch_size, np.ceil((c.update_every - since) / rate)), 8 * c.batch_size + c.update_every))
+            batch = order[ptr: ptr + (bs if drawn else c.batch_size)]
+            ptr += len(batch)
+            t0 = time.perf_counter()
+            acc = self.guided_batch(models, batch) if models.guided else self.unguided_batch(batch)
+            self.timing["guided_progressive_s"] += time.perf_counter() - t0
+            got.add(acc, len(self.updates))
+            drawn += len(batch)
+            accepted += len(acc.q)
+            since += len(acc.q)
+            total += len(acc.q)
+            if since >= c.update_every:
+                since = 0
+                models = self.fit_models(*got.pairs_so_far())
         if len(self.updates) < c.num_updates and len(self.d1):
             self.fallback("updates", f"only {len(self.updates)} of {c.num_updates} model updates: "
                           f"{total} correspondences from all {len(self.d1)} features (need {c.update_every} per update)")
         return models, order[ptr:]
 
-    def unguided_batch(self, queries: np.ndarray, dense: "DenseKnn2 | None" = None) -> _Accepted:
-        """Step 2: exact 2-NN of ``queries`` over all of image 2 (``dense``: the progressive phase's batch searcher)."""
-        if dense is not None and not self.binary:
-            i1, s1, _i2, s2 = dense.query(self.d1[queries])  # squared distances
-        else:
-            if self.d2_sqnorms is None and not self.binary:
-                self.d2_sqnorms = np.einsum("ij,ij->i", self.d2, self.d2)
-            (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
-            # knn2 returns L2 distances; convert back to the kernel's squared form for select()
-            if not self.binary:
-                s1, s2 = s1 * s1, s2 * s2
+    def unguided_start(self, order: np.ndarray, got: _Collected) -> tuple[GuidanceModels | None, int]:
+        """Step 2 (§III-A; the gate is beyond the paper, issue 11): match drawn features against all of image 2
+        until a first model may guide. Returns ``(models or None, queries consumed)``.
+
+        ``start="paper"``: the first model is fitted after ``update_every`` correspondences (exact search), whatever
+        they are; the verdict on them is only reported. ``start="verified"``: the unguided correspondences are the
+        evidence (no model selected them). After ``first_check`` of them, and each time they have grown by
+        ``check_growth``, :func:`~guidedmatch.geometry.two_view_geometry` decides; the first model is fitted as soon
+        as it says "verified" -- a model fitted on too little evidence never guides. The search is the approximate
+        index of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`, ``unguided_index``) or exact. When the
+        start has spent ``max_unguided * N1 * N2`` comparisons without verified evidence it stops (early exit, verdict
+        from the last check: "no-overlap" / "too-few-matches"), the remaining features are not matched.
+        """
+        from .prepared import UnguidedSearch
+
+        c = self.c
+        n1, n2 = len(self.d1), len(self.d2)
+        paper = c.start == "paper"
+        kind = UnguidedSearch.choose(self.p2, use_index=c.unguided_index and not paper)
+        if kind == "ivf" and self.p2._index is None:
+            t0 = time.perf_counter()
+            self.p2.index()
+            self.timing["index_build_s"] += time.perf_counter() - t0
+        self.unguided_search = kind
+        frac = c.max_unguided if c.max_unguided is not None else (0.025 if kind == "ivf" else 0.5)
+        budget = frac * n1 * n2
+        bs = c.batch_size if kind != "ivf" else max(c.batch_size, 256)  # an index search has no GEMM to fill
+        models = None
+        total = ptr = 0
+        next_check = max(c.first_check, c.min_model_matches)
+        checked_at = -1
+        with UnguidedSearch(self.p1, self.p2, kind) as search:
+            while ptr < len(order):
+                n = bs
+                if not paper and ptr:  # the last batch before the budget is cut to fit it (+ <= 8 queries)
+                    per_query = self.unguided_comparisons / ptr
+                    n = int(min(bs, max(8, np.ceil((budget - self.unguided_comparisons) / max(per_query, 1.0)))))
+                batch = order[ptr: ptr + n]
+                ptr += len(batch)
+                t0 = time.perf_counter()
+                acc = self.unguided_batch(batch, search)
+                self.timing["initial_bf_s"] += time.perf_counter() - t0
+                got.add(acc, 0)
+                total += len(acc.q)
+                if paper:
+                    if total >= c.update_every and total >= c.min_model_matches:
+                        self.decide(got)
+                        models = self.fit_models(*got.pairs_so_far())
+                        break
+                    continue
+                if total >= next_check:
+                    checked_at = total
+                    g = self.decide(got)
+                    if g and not self.strong(g) and self.c.verdict_iters < 10000:
+                        g = self.decide(got, 10000)  # weak at the quick check: the full-strength fit decides
+                    if self.strong(g):
+                        # the first model is fitted anew (ransac_method, 10000 iterations): the verdict's quick F is only a
+                        # gate (reusing a quick PROSAC F lost 20-70 % of the true matches on 0000-0003 / 0002-0006)
+                        models = self.fit_models(*got.pairs_so_far())
+                        break
+                    next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
+                if self.unguided_comparisons >= budget and ptr < len(order):
+                    self.early_exit = (f"unguided start spent {self.unguided_comparisons / max(n1 * n2, 1):.1%} of "
+                                       f"N1*N2 ({frac:.1%} allowed) on {ptr} of {n1} features without evidence "
+                                       f"strong enough to guide; the remaining {len(order) - ptr} features are not "
+                                       "matched")
+                    break
+        if models is None:
+            if checked_at != total or self.decision is None:
+                self.decide(got)  # the verdict on all the evidence there is
+            if paper:
+                self.fallback("updates", f"only 0 of {c.num_updates} model updates: {total} correspondences from all "
+                              f"{n1} features (need {c.update_every} per update)")
+                return None, ptr
+            what = "early_exit" if self.early_exit else "no_model"
+            weak = " (verified, but below guide_margin: no model guided)" if self.decision else ""
+            why = self.early_exit or (f"the unguided correspondences were never verified strongly enough to guide "
+                                      f"(last verdict {self.decision.verdict!r}{weak}); every feature matched "
+                                      "against all of image 2")
+            self.fallback(what, why + f"; {self.decision.reason}")
+        return models, ptr
+
+    def strong(self, g) -> bool:
+        """A verified verdict strong enough to guide: the model's inliers reach ``guide_margin`` times
+        ``max(random-inlier bound, min_inliers)`` (a weak one is reported, not followed)."""
+        if not g:
+            return False
+        e = g.evidence
+        n, bound = (e["H_inliers"], e["random_bound_H"]) if g.model == "H" else (e["F_inliers"], e["random_bound_F"])
+        return n >= self.c.guide_margin * max(bound, 15.0)
+
+    def decide(self, got: _Collected, max_iters: int | None = None):
+        """The two-view verdict on the unguided correspondences so far (phase 0: no model selected them), with
+        ``verdict_iters`` RANSAC iterations (or ``max_iters``)."""
+        from .geometry import VerdictConfig, two_view_geometry
+
+        t0 = time.perf_counter()
+        q = np.concatenate([a.q for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
+        j = np.concatenate([a.j for a, p in got.parts if p == 0]) if got.parts else np.zeros(0, np.int64)
+        # uniform MAGSAC++ (the calibrated rule). PROSAC on ratio-sorted evidence finds weak models in fewer
+        # iterations (AKAZE 0000-0005 at 12k) but also "verified" a false F on 0001-0007 at 8192 (45 of 247 inliers
+        # correct under the GT cameras), so it is not used for the decision.
+        prior = self.decision.F if self.decision is not None and self.decision.model == "F" else None
+        g = two_view_geometry(self.f1.keypoints[q], self.f2.keypoints[j], self.f1.image_size, self.f2.image_size,
+                              VerdictConfig(seed=self.c.seed, max_iters=max_iters or self.c.verdict_iters),
+                              F_prior=prior)
+        self.decision = g
+        self.checks.append(dict(evidence=int(len(q)), verdict=g.verdict, model=g.model, strong=self.strong(g),
+                                iterations=int(max_iters or self.c.verdict_iters),
+                                F_inliers=g.evidence.get("F_inliers"), H_inliers=g.evidence.get("H_inliers"),
+                                bound_F=round(float(g.evidence.get("random_bound_F", 0.0)), 1),
+                                comparisons=int(self.unguided_comparisons)))
+        self.timing["verdict_s"] += time.perf_counter() - t0
+        return g
+
+    def unguided_batch(self, queries: np.ndarray, search=None) -> _Accepted:
+        """Step 2: 2-NN of ``queries`` over all of image 2: ``search`` (:class:`~guidedmatch.prepared.UnguidedSearch`,
+        the unguided start) or exact (a final pass without models)."""
+        if search is not None:
+            i1, s1, i2, s2, comp = search.query(queries)
+            self.account(len(queries), comp)
+            self.unguided_comparisons += comp
+            nq = max(len(queries), 1)
+            self.ncand.append(np.full(len(queries), comp // nq, np.int64))
+            # single-candidate logic: an index search that found one neighbour has no second to test against
+            found = np.where(i2 >= 0, 2, np.where(i1 >= 0, 1, 0))
+            return self.select(queries, i1, s1, s2, np.minimum(found, len(self.d2)))
+        if self.d2_sqnorms is None and not self.binary:
+            self.d2_sqnorms = self.p2.sqnorms
+        (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
+        # knn2 returns L2 distances; convert back to the kernel's squared form for select()
+        if not self.binary:
+            s1, s2 = s1 * s1, s2 * s2
         n2 = len(self.d2)
         self.account(len(queries), len(queries) * n2)
         nc = np.full(len(queries), n2, np.int64)
@@ -462,6 +662,7 @@ class _GuidedRun:
     def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray) -> GuidanceModels:
         """Step 3 (§III-B..E): refit F, the alignment and the spatial-order model on all correspondences so far."""
         t0 = time.perf_counter()
+        self.last_alignment = None
         k1, k2 = self.f1.keypoints, self.f2.keypoints
         p1, p2 = k1[acc_i], k2[acc_j]
         fr = self.fit_fundamental(p1, p2) if (self.mode.use_epi or self.mode.use_ia) else None
@@ -479,13 +680,15 @@ class _GuidedRun:
         so_fit = self.fit_spatial_order(pts1a, pts2a, acc_i, acc_j, inl) if self.mode.use_so else None
         so = so_fit if so_fit is not None and so_fit.usable else None
         foc = al.focal if al is not None else None
+        safe = self.last_alignment if al is not None else None
         self.updates.append(ModelUpdate(
             update=len(self.updates) + 1, num_correspondences=int(len(acc_i)),
             F_inliers=int(fr.num_inliers) if fr is not None else None,
             focal=(float(foc.f1), float(foc.f2)) if foc is not None else None,
             focal_fallback=(bool(foc.fallback1), bool(foc.fallback2)) if foc is not None else None,
             roll_deg=float(al.roll_deg) if al is not None else None, H2=H2 if al is not None else None,
-            alignment_scale=None if np.allclose(H2, np.eye(3)) else _local_scale_range(H2, k2),
+            alignment_scale=tuple(float(v) for v in safe.check.scale_range) if safe is not None else None,
+            alignment=self.last_alignment.approach if self.last_alignment is not None and self.mode.use_ia else None,
             so_usable=bool(so_fit.usable) if so_fit is not None else None,
             n_good=float(so_fit.n_good) if so_fit is not None else None,
             k_hat=float(so_fit.k_hat) if so_fit is not None else None,
@@ -511,14 +714,22 @@ class _GuidedRun:
 
     def fit_alignment(self, F, p1_in, p2_in):
         """§III-E: the alignment (``H1``, ``H2``, Bougnoux focal, roll) from F and its inliers for the ``alignment``
-        approach, or None when it fails (reported; the run then matches in original coordinates)."""
+        approach, validated over the keypoints (:func:`~guidedmatch.alignment.safe_alignment`: local scale,
+        orientation, line at infinity) with the fallback requested approach -> in-plane rotation (``c_inplane``) ->
+        none, every rejection reported; None when no alignment is used (the run then matches in original
+        coordinates). ``self.last_alignment``: the :class:`~guidedmatch.alignment.SafeAlignment`."""
         from . import alignment
 
-        al = alignment.align_from_fundamental(F, p1_in, p2_in, self.f1.image_size, self.f2.image_size,
-                                              approach=self.c.alignment)
-        if not al:
-            self.fallback("alignment", f"alignment failed: {al.reason}; matching in original coordinates")
+        safe = alignment.safe_alignment(F, p1_in, p2_in, self.f1.image_size, self.f2.image_size, self.c.alignment,
+                                        self.f2.keypoints, self.f1.keypoints)
+        self.last_alignment = safe
+        for ap, why in safe.fallbacks:
+            nxt = {"c_inplane": "in-plane rotation only (c_inplane)", "none": "original coordinates"}
+            used = nxt.get(safe.approach, safe.approach) if (ap, why) == safe.fallbacks[-1] else "the next approach"
+            self.fallback("alignment", f"alignment {ap!r} rejected: {why}; {used} used")
+        if safe.result is None:
             return None
+        al = safe.result
         foc = al.focal
         for k, (fb, why) in enumerate(((foc.fallback1, foc.reason1), (foc.fallback2, foc.reason2)), 1):
             if fb:
@@ -683,7 +894,22 @@ class _GuidedRun:
         return out
 
     def result(self, t_start, models, q, j, d, flags, dropped_recheck, dropped_o2o, dropped_mutual) -> MatchResult:
-        """Step 8: the MatchResult with its :class:`~guidedmatch.results.MatchStats` (every count of the run)."""
+        """Step 8: the MatchResult with its :class:`~guidedmatch.results.MatchStats` (every count of the run) and the
+        two-view verdict decided on the unguided evidence, reported over the final matches
+        (:func:`~guidedmatch.geometry.report_geometry`); ``unverified="drop"`` empties an unverified result."""
+        from .geometry import VerdictConfig, report_geometry
+
+        t0 = time.perf_counter()
+        x1, x2 = self.f1.keypoints[q], self.f2.keypoints[j]
+        if self.decision is None:  # no unguided start ran (num_updates = 0): every match is unguided evidence
+            got = _Collected()
+            got.add(_Accepted(q, j, d, np.zeros(len(q), bool)), 0)
+            self.decide(got)
+        final_F = models.F if models is not None and models.F is not None else None
+        geometry = report_geometry(self.decision, x1, x2, F=final_F, config=VerdictConfig(seed=self.c.seed))
+        self.timing["verdict_s"] += time.perf_counter() - t0
+        q, j, d, flags, geometry, dropped_unverified = _drop_unverified(self.c, q, j, d, flags, geometry,
+                                                                        self.fallback)
         n1, n2 = len(self.d1), len(self.d2)
         nphase = len(self.updates) + 1
         phase_comparisons = tuple(self.phase_comparisons.get(k, 0) for k in range(nphase))
@@ -699,9 +925,25 @@ class _GuidedRun:
             F=None if models is None or models.F is None else np.asarray(models.F),
             alignment_H2=None if models is None or np.allclose(models.H2, np.eye(3)) else np.asarray(models.H2),
             phase_queries=tuple(self.phase_queries.get(k, 0) for k in range(nphase)),
-            phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c)
+            phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c,
+            details=dict(unguided_search=self.unguided_search, verdict_checks=tuple(self.checks),
+                         early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons),
+                         dropped_unverified=dropped_unverified))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
-        return MatchResult(pairs, d, stats, flags)
+        return MatchResult(pairs, d, stats, flags, geometry)
+
+
+def _drop_unverified(c: MatcherConfig, q, j, d, flags: dict, geometry, report):
+    """``unverified="drop"``: a guided match whose verdict is "no-overlap" returns no matches (reported through
+    ``report(what, reason)``; "too-few-matches" keeps its few: nothing could be tested); returns ``(q, j, d, flags,
+    geometry, number dropped)``."""
+    if geometry.verdict != "no-overlap" or c.unverified != "drop" or len(q) == 0:
+        return q, j, d, flags, geometry, 0
+    n = len(q)
+    report("unverified", f"verdict {geometry.verdict!r} ({geometry.reason}): the {n} matches are not returned "
+                         "(unverified='drop')")
+    keep = np.zeros(n, bool)
+    return q[keep], j[keep], d[keep], {k: v[keep] for k, v in flags.items()}, geometry.with_inliers(keep[:0]), n
 
 
 def _argsort_f32(key: np.ndarray) -> np.ndarray:
@@ -711,14 +953,3 @@ def _argsort_f32(key: np.ndarray) -> np.ndarray:
     b = np.where(b >> np.uint64(31), ~b & np.uint64(0xFFFFFFFF), b | np.uint64(0x80000000))
     comp = (b << np.uint64(32)) | np.arange(len(b), dtype=np.uint64)
     return (np.sort(comp) & np.uint64(0xFFFFFFFF)).astype(np.int64)
-
-
-def _local_scale_range(H: np.ndarray, pts: np.ndarray) -> tuple[float, float]:
-    """Min/max of sqrt|det J| of the homography at ``pts`` (how H2 stretches distances there)."""
-    if len(pts) == 0:
-        return (1.0, 1.0)
-    p = map_points(H, pts)
-    w = p[:, 2]
-    # det of the Jacobian of a homography at x: det(H) / w^3
-    s = np.sqrt(np.abs(np.linalg.det(H) / w**3))
-    return (float(np.min(s)), float(np.max(s)))

@@ -51,7 +51,9 @@ class Fallback:
     Attributes:
         what: the step: ``"fundamental"`` (F estimation failed), ``"alignment"``, ``"focal1"`` / ``"focal2"``
             (Bougnoux focal unusable, ``w + h`` used), ``"spatial_order"`` (SO model unusable), ``"updates"``
-            (fewer model updates than configured), ``"so_prob"`` (per-match probabilities not computed).
+            (fewer model updates than configured), ``"so_prob"`` (per-match probabilities not computed),
+            ``"no_model"`` (the unguided evidence was never verified: no model guided), ``"early_exit"`` (the
+            unguided start stopped at its comparison budget without verified evidence: verdict no-overlap).
         reason: one sentence: what failed and what was done instead.
         at_update: number of model updates completed when it happened (0 = during the unguided phase).
     """
@@ -75,6 +77,8 @@ class ModelUpdate:
         H2: ``(3, 3)`` alignment homography of image 2 (mode IA; None: identity).
         alignment_scale: ``(min, max)`` local scale of H2 over the image-2 keypoints (band width in original px
             = ``band_px / scale``).
+        alignment: the approach used after validation (``MatcherConfig.alignment``, ``"c_inplane"`` or ``"none"``
+            when the requested one failed :func:`~guidedmatch.alignment.check_alignment`; reported as a fallback).
         so_usable: the spatial-order model was usable (None: not fitted in this mode).
         n_good: N_G(ω*), Talker's estimate of the correct matches inside the overlap window (Eq. 10).
         k_hat: normalized Kendall distance inside ω*.
@@ -89,6 +93,7 @@ class ModelUpdate:
     roll_deg: float | None = None
     H2: np.ndarray | None = None
     alignment_scale: tuple[float, float] | None = None
+    alignment: str | None = None
     so_usable: bool | None = None
     n_good: float | None = None
     k_hat: float | None = None
@@ -108,6 +113,9 @@ class PhaseTimes:
         recheck_s: re-check of early matches against the final models (incl. the in-band flag).
         filter_s: one-to-one and mutual filters.
         so_prob_s: per-match spatial-order probabilities.
+        verdict_s: two-view verdicts on the unguided evidence (:func:`~guidedmatch.geometry.two_view_geometry`) and
+            the report over the final matches.
+        index_build_s: building image 2's approximate index for the unguided start (0 when it was prepared).
     """
 
     initial_bf_s: float = 0.0
@@ -117,6 +125,8 @@ class PhaseTimes:
     recheck_s: float = 0.0
     filter_s: float = 0.0
     so_prob_s: float = 0.0
+    verdict_s: float = 0.0
+    index_build_s: float = 0.0
 
 
 @dataclass(frozen=True)

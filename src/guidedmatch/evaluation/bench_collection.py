@@ -1,0 +1,308 @@
+"""Collection benchmark (issue 12): ``guidedmatch colmap DB --pairs exhaustive`` vs ``pycolmap.match_exhaustive``.
+
+``python -m guidedmatch.evaluation.bench_collection [--out benchmarks/results/collection] [--work DIR]``
+
+On Herz-Jesus-P8 (8 images, 3072x2048, 28 pairs), for each feature set:
+
+1. one COLMAP database with ``pycolmap.extract_features`` (SIFT, CPU, 2 threads; ``default``: COLMAP's defaults,
+   8192 features; ``50k``: ``peak_threshold=0.002``, ``max_num_features=60000``), copied for every run below;
+2. as fresh processes (Python start-up and imports included in the wall time):
+   * ``guidedmatch colmap DB --pairs exhaustive`` (auto backend: the in-process / local-cluster rule), and with
+     ``--workers 1`` / ``--workers 2`` (the 1 vs 2 local workers scaling) and ``--workers 0`` (in-process);
+   * ``pycolmap.match_exhaustive`` on a copy (CPU, ``num_threads=2``, COLMAP's matching and verification
+     defaults);
+   * the rerun of our command on the finished database (every pair skipped);
+3. verified inliers = sum over the database's two-view geometries of their inlier matches;
+   ``pycolmap.incremental_mapping`` on both databases: registered images of the largest model.
+
+Writes ``collection.json`` (every number + run metadata), ``collection.md`` (tables) and ``collection.png``.
+The machine is shared by other jobs while it runs: times are noisy, ratios within one run are the numbers to read.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+DATA_REL = "pose_pairs/strecha/Herz-Jesus-P8/images"
+FEATURE_SETS = {
+    "default": dict(),  # COLMAP's defaults: max_num_features 8192, peak_threshold 0.00667
+    "50k": dict(peak_threshold=0.002, max_num_features=60000),
+}
+THREADS = 2
+SRC = str(Path(__file__).resolve().parents[2])
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = SRC + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
+
+
+def _timed(cmd: list[str], log: Path | None = None) -> dict:
+    """Run ``cmd`` as a fresh process; wall time, return code, last lines of output."""
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True, env=_env())
+    wall = time.perf_counter() - t0
+    out = dict(cmd=" ".join(cmd[2:]) if cmd[1] == "-c" else " ".join(cmd), wall_s=wall, returncode=r.returncode,
+               stdout_tail=r.stdout.strip().splitlines()[-8:], stderr_tail=r.stderr.strip().splitlines()[-3:])
+    if log is not None and log.exists():
+        lines = log.read_text().splitlines()
+        summary = json.loads(lines[-1]) if lines else {}
+        out["summary"] = {k: summary.get(k) for k in ("done", "skipped", "failed", "wall_s", "backend", "workers",
+                                                      "backend_reason", "matches", "inliers", "verified_pairs",
+                                                      "match_s", "verdict_s", "load_s", "startup_s", "shutdown_s",
+                                                      "image_loads", "cache_hits", "geometry_source", "work")}
+    if r.returncode != 0:
+        raise RuntimeError(f"{out['cmd']} failed ({r.returncode}): {r.stderr.strip()[-2000:]}")
+    return out
+
+
+def extract(image_dir: Path, db: Path, options: dict) -> dict:
+    """A COLMAP database of the folder with pycolmap's SIFT (CPU, 2 threads) in a fresh process."""
+    code = f"""
+import pycolmap, time
+o = pycolmap.FeatureExtractionOptions()
+o.num_threads = {THREADS}
+o.use_gpu = False
+for k, v in {options!r}.items():
+    setattr(o.sift, k, v)
+t = time.perf_counter()
+pycolmap.extract_features({str(db)!r}, {str(image_dir)!r}, camera_mode=pycolmap.CameraMode.AUTO,
+                          extraction_options=o, device=pycolmap.Device.cpu)
+print(time.perf_counter() - t)
+"""
+    return _timed([sys.executable, "-c", code])
+
+
+def colmap_match(db: Path) -> dict:
+    code = f"""
+import pycolmap, time
+m = pycolmap.FeatureMatchingOptions()
+m.num_threads = {THREADS}
+m.use_gpu = False
+t = time.perf_counter()
+pycolmap.match_exhaustive({str(db)!r}, matching_options=m, device=pycolmap.Device.cpu)
+print(time.perf_counter() - t)
+"""
+    out = _timed([sys.executable, "-c", code])
+    out["inner_s"] = float(out["stdout_tail"][-1])
+    return out
+
+
+def ours(db: Path, log: Path, *extra: str) -> dict:
+    if log.exists():
+        log.unlink()
+    return _timed([sys.executable, "-m", "guidedmatch.cli", "colmap", str(db), "--pairs", "exhaustive", "--no-progress",
+                   "--log", str(log), *extra], log)
+
+
+def _image_names(db: Path) -> list[str]:
+    import pycolmap
+
+    d = pycolmap.Database.open(str(db))
+    try:
+        return sorted(im.name for im in d.read_all_images())
+    finally:
+        d.close()
+
+
+def db_stats(db: Path) -> dict:
+    """Features per image, pairs with matches, raw matches, verified pairs and their inlier matches."""
+    import numpy as np
+    import pycolmap
+
+    d = pycolmap.Database.open(str(db))
+    try:
+        images = d.read_all_images()
+        nf = [d.num_keypoints_for_image(im.image_id) for im in images]
+        pids, nm = d.read_num_matches()
+        gids, ni = d.read_two_view_geometry_num_inliers()
+        ni = np.asarray(ni, np.int64)
+        return dict(images=len(images), features_mean=float(np.mean(nf)), features_min=int(min(nf)),
+                    features_max=int(max(nf)), pairs_with_matches=len(pids), matches=int(np.sum(nm)),
+                    verified_pairs=int(np.sum(ni > 0)), verified_inliers=int(ni.sum()))
+    finally:
+        d.close()
+
+
+def mapping(db: Path, image_dir: Path, out: Path) -> dict:
+    code = f"""
+import pycolmap, time
+t = time.perf_counter()
+recs = pycolmap.incremental_mapping({str(db)!r}, {str(image_dir)!r}, {str(out)!r})
+best = max(recs.values(), key=lambda r: r.num_reg_images(), default=None)
+print(len(recs), 0 if best is None else best.num_reg_images(), time.perf_counter() - t)
+"""
+    r = _timed([sys.executable, "-c", code])
+    n_models, registered, t = r["stdout_tail"][-1].split()
+    return dict(models=int(n_models), registered=int(registered), time_s=float(t))
+
+
+def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling: bool = True, note: str = "",
+        map_colmap_sets=("default",)) -> dict:
+    from .meta import run_metadata, write_json
+
+    if not image_dir.is_dir():
+        raise FileNotFoundError(f"Herz-Jesus-P8 images not found: {image_dir}")
+    work.mkdir(parents=True, exist_ok=True)
+    result = dict(meta=run_metadata(), threads=THREADS, images=str(image_dir), sets={}, run_note=note,
+                  note="machine shared with other jobs while running: wall times are noisy")
+    old = out_dir / "collection.json"
+    if old.exists():  # keep the sets of an earlier run that this one does not redo
+        with open(old) as fh:
+            result["sets"] = {k: v for k, v in json.load(fh).get("sets", {}).items() if k not in sets}
+    for name in sets:
+        map_colmap = name in map_colmap_sets
+        print(f"== {name}: extracting", flush=True)
+        base = work / f"{name}.db"
+        if base.exists():
+            base.unlink()
+        row = dict(extraction_options=FEATURE_SETS[name])
+        row["extract"] = extract(image_dir, base, FEATURE_SETS[name])
+        row["features"] = db_stats(base)
+
+        def copy(tag: str) -> Path:
+            p = work / f"{name}-{tag}.db"
+            shutil.copy(base, p)
+            return p
+
+        print(f"== {name}: warm-up (Numba compiles the matcher's kernels into its on-disk cache once)", flush=True)
+        wdb = copy("warmup")
+        names = _image_names(wdb)
+        (work / "warmup-pairs.txt").write_text(f"{names[0]} {names[1]}\n")
+        row["warmup"] = ours(wdb, work / f"{name}-warmup.jsonl", "--workers", "0", "--pairs",
+                             str(work / "warmup-pairs.txt"))
+        print(f"== {name}: COLMAP match_exhaustive", flush=True)
+        cdb = copy("colmap")
+        row["colmap"] = colmap_match(cdb)
+        row["colmap"]["db"] = db_stats(cdb)
+        print(f"== {name}: guidedmatch colmap (auto)", flush=True)
+        odb = copy("ours")
+        row["ours"] = ours(odb, work / f"{name}-ours.jsonl")
+        row["ours"]["db"] = db_stats(odb)
+        print(f"== {name}: rerun", flush=True)
+        row["rerun"] = ours(odb, work / f"{name}-rerun.jsonl")
+        print(f"== {name}: mapping", flush=True)
+        row["mapping_ours"] = mapping(odb, image_dir, work / f"{name}-sparse-ours")
+        if map_colmap:
+            row["mapping_colmap"] = mapping(cdb, image_dir, work / f"{name}-sparse-colmap")
+        if scaling:
+            s = row["ours"]["summary"]
+            auto = "0" if s["backend"] == "in-process" else str(s["workers"])
+            for w in ("0", "1", "2"):
+                if w == auto:  # the auto run was this configuration: not run twice
+                    row[f"workers_{w}"] = dict(row["ours"], same_as="auto")
+                    continue
+                print(f"== {name}: --workers {w}", flush=True)
+                wdb = copy(f"w{w}")
+                row[f"workers_{w}"] = ours(wdb, work / f"{name}-w{w}.jsonl", "--workers", w)
+                row[f"workers_{w}"]["db"] = db_stats(wdb)
+        c, o = row["colmap"], row["ours"]
+        row["ratios"] = dict(
+            time_ours_over_colmap=o["wall_s"] / c["wall_s"],
+            inliers_ours_over_colmap=o["db"]["verified_inliers"] / max(1, c["db"]["verified_inliers"]),
+            workers_2_over_1=(row["workers_2"]["wall_s"] / row["workers_1"]["wall_s"]) if scaling else None,
+            workers_2_over_1_matching=(row["workers_2"]["summary"]["wall_s"] / row["workers_1"]["summary"]["wall_s"])
+            if scaling else None)
+        result["sets"][name] = row
+        write_json(out_dir / "collection.json", result)
+    (out_dir / "collection.md").write_text(markdown(result))
+    figure(result, out_dir / "collection.png")
+    return result
+
+
+def markdown(result: dict) -> str:
+    lines = ["# Collection matching: `guidedmatch colmap` vs `pycolmap.match_exhaustive` (Herz-Jesus-P8, 28 pairs)", "",
+             f"CPU: {result['meta'].get('cpu_model')}, {result['meta'].get('usable_cores')} usable cores; COLMAP "
+             f"{THREADS} threads. {result['note']}. Wall times of fresh processes (imports, cluster start/stop "
+             "included). Verified inliers: sum of the inlier matches of all two-view geometries in the database. "
+             "Numba's on-disk cache was warmed first (one pair, untimed: "
+             f"{result['sets'][next(iter(result['sets']))]['warmup']['wall_s']:.1f} s); a first-ever run adds that "
+             "compilation once." + (f" Code: {result['run_note']}." if result.get("run_note") else ""), "",
+             "| features | method | wall (s) | inner (s) | backend | verified pairs | verified inliers | "
+             "registered (mapper) |", "|---|---|---|---|---|---|---|---|"]
+    for name, row in result["sets"].items():
+        f = row["features"]
+        feat = f"{name} ({f['features_mean']:.0f}/image)"
+        c, o = row["colmap"], row["ours"]
+        reg_c = f"{row['mapping_colmap']['registered']}/8" if "mapping_colmap" in row else "not run"
+        lines.append(f"| {feat} | COLMAP match_exhaustive | {c['wall_s']:.2f} | {c['inner_s']:.2f} | 2 threads | "
+                     f"{c['db']['verified_pairs']} | {c['db']['verified_inliers']} | {reg_c} |")
+        s = o.get("summary", {})
+        lines.append(f"| {feat} | guidedmatch colmap (auto) | {o['wall_s']:.2f} | {s.get('wall_s', 0):.2f} | "
+                     f"{s.get('backend')} ({s.get('workers')}) | {o['db']['verified_pairs']} | "
+                     f"{o['db']['verified_inliers']} | {row['mapping_ours']['registered']}/8 |")
+        r = row["rerun"]
+        lines.append(f"| {feat} | rerun (all skipped: {r['summary'].get('skipped')}) | {r['wall_s']:.2f} | "
+                     f"{r['summary'].get('wall_s', 0):.2f} | - | - | - | - |")
+        for w in ("0", "1", "2"):
+            if f"workers_{w}" in row:
+                x = row[f"workers_{w}"]
+                same = " (= the auto run)" if x.get("same_as") else ""
+                lines.append(f"| {feat} | guidedmatch colmap --workers {w}{same} | {x['wall_s']:.2f} | "
+                             f"{x['summary'].get('wall_s', 0):.2f} | {x['summary'].get('backend')} | "
+                             f"{x['db']['verified_pairs']} | {x['db']['verified_inliers']} | - |")
+    lines += ["", "| features | ours / COLMAP time | ours / COLMAP verified inliers | 2 / 1 workers (wall) | "
+              "2 / 1 workers (inner) |", "|---|---|---|---|---|"]
+    for name, row in result["sets"].items():
+        q = row["ratios"]
+        fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+        lines.append(f"| {name} | {fmt(q['time_ours_over_colmap'])} | {fmt(q['inliers_ours_over_colmap'])} | "
+                     f"{fmt(q['workers_2_over_1'])} | {fmt(q['workers_2_over_1_matching'])} |")
+    lines += ["", "inner = time inside the process: COLMAP's match_exhaustive call; ours: the engine's wall time "
+              "(matching, verdicts, writes, cluster start/stop), without the Python start-up and imports.", ""]
+    return "\n".join(lines)
+
+
+def figure(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(result["sets"])
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    x = range(len(names))
+    for ax, key, label in ((axes[0], "wall_s", "wall time of a fresh process (s)"),
+                           (axes[1], "verified_inliers", "verified inlier matches (sum over pairs)")):
+        for k, (who, color) in enumerate((("colmap", "tab:gray"), ("ours", "tab:blue"))):
+            vals = [result["sets"][n][who][key] if key == "wall_s" else result["sets"][n][who]["db"][key]
+                    for n in names]
+            ax.bar([i + 0.38 * k for i in x], vals, 0.36, color=color,
+                   label="pycolmap.match_exhaustive" if who == "colmap" else "guidedmatch colmap")
+        ax.set_xticks([i + 0.19 for i in x], [f"{n}\n({result['sets'][n]['features']['features_mean']:.0f} feat.)"
+                                             for n in names])
+        ax.set_title(label, fontsize=10)
+        ax.legend(fontsize=8)
+    fig.suptitle("Herz-Jesus-P8, 28 pairs, 2 CPU threads (shared machine)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m guidedmatch.evaluation.bench_collection", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", default=os.environ.get("GUIDEDMATCH_DATA", "/work/shared/data"))
+    p.add_argument("--images", default=None, help=f"image folder (default DATA/{DATA_REL})")
+    p.add_argument("--out", default="benchmarks/results/collection")
+    p.add_argument("--work", default="/tmp/guidedmatch-bench-collection", help="databases (not in the repo)")
+    p.add_argument("--sets", default="default,50k")
+    p.add_argument("--no-scaling", action="store_true", help="skip the --workers 0/1/2 runs")
+    p.add_argument("--note", default="", help="what code ran (recorded in the JSON and the table)")
+    a = p.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note)
+    print(markdown(res))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

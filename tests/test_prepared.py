@@ -1,0 +1,100 @@
+"""Tests of guidedmatch.prepared (per-image state reused across pairs, issue 11)."""
+import pickle
+
+import numpy as np
+import pytest
+
+from guidedmatch import kernels
+from guidedmatch.errors import ConfigError, InputError
+from guidedmatch.features import Features
+from guidedmatch.prepared import PreparedConfig, PreparedImage, as_prepared, prepare
+
+
+def _sift_like(n, seed=0, size=(640, 480)):
+    rng = np.random.default_rng(seed)
+    # clustered byte-valued descriptors (as SIFT: integers 0..255), so IVF cells are uneven
+    centres = rng.integers(0, 200, (20, 32))
+    d = np.clip(centres[rng.integers(0, 20, n)] + rng.integers(-30, 30, (n, 32)), 0, 255).astype(np.float32)
+    return Features(rng.uniform(0, size[0] - 1, (n, 2)) * [1, size[1] / size[0]], d, size, "sift")
+
+
+def _exact_top2(q, d):
+    s = ((q[:, None, :].astype(np.float64) - d[None].astype(np.float64)) ** 2).sum(-1)
+    o = np.lexsort((np.broadcast_to(np.arange(len(d)), s.shape), s), axis=1)[:, :2]
+    r = np.arange(len(q))[:, None]
+    return o[:, 0], s[r[:, 0], o[:, 0]], o[:, 1], s[r[:, 0], o[:, 1]]
+
+
+def test_kernel_forms():
+    f = _sift_like(1500)
+    p = prepare(f)
+    assert p.byte_exact and p.kdesc.dtype == np.uint8 and np.array_equal(p.kdesc, f.descriptors.astype(np.uint8))
+    np.testing.assert_allclose(p.sqnorms, (f.descriptors.astype(np.float64) ** 2).sum(1), rtol=1e-6)
+    g = Features(f.keypoints, f.descriptors + 0.5, f.image_size, "sift")  # not byte-valued: float32 kept
+    pg = prepare(g)
+    assert not pg.byte_exact and pg.kdesc.dtype == np.float32
+    rng = np.random.default_rng(1)
+    b = Features(f.keypoints, rng.integers(0, 256, (1500, 32), dtype=np.uint8), f.image_size, "orb")
+    pb = prepare(b)
+    assert pb.binary and not pb.has_index and pb.index() is None and pb.sqnorms is None
+    assert np.array_equal(pb.kdesc, kernels.pack_bits_u64(b.descriptors))
+    with pytest.raises(InputError):
+        pb.search2(f.descriptors[:2])
+    assert as_prepared(p) is p and isinstance(as_prepared(f), PreparedImage)
+    with pytest.raises(InputError):
+        prepare(np.zeros((3, 2)))
+
+
+def test_search2_is_exact_when_every_cell_is_probed():
+    f = _sift_like(1200, seed=2)
+    q = _sift_like(100, seed=3).descriptors
+    p = prepare(f, PreparedConfig(nprobe=10_000))
+    assert p.nlist == round(2 * np.sqrt(1200))
+    i1, s1, i2, s2, comp = p.search2(q)
+    e1, es1, e2, es2 = _exact_top2(q, f.descriptors)
+    np.testing.assert_array_equal(s1, es1.astype(np.float32))
+    np.testing.assert_array_equal(s2, es2.astype(np.float32))
+    assert np.all(i1 == e1) or np.all(s1 == es1)  # ties may pick another index at the same distance
+    assert comp == len(q) * (p.nlist + len(f))
+
+
+def test_search2_approximate_distances_exact_and_counted():
+    f = _sift_like(3000, seed=4)
+    q = _sift_like(200, seed=5).descriptors
+    p = prepare(f)  # nprobe 4 of 110 cells
+    i1, s1, i2, s2, comp = p.search2(q)
+    ok = i1 >= 0
+    ref = ((q[ok] - f.descriptors[i1[ok]]).astype(np.float64) ** 2).sum(1)
+    np.testing.assert_array_equal(s1[ok], ref.astype(np.float32))  # distances of what it found are exact
+    e1, es1, _, _ = _exact_top2(q, f.descriptors)
+    assert np.all(s1 >= es1.astype(np.float32))  # never better than the true nearest neighbour
+    assert np.mean(s1 == es1.astype(np.float32)) > 0.5
+    # comparisons = centroids + the probed cells' sizes, and far below brute force
+    assert len(q) * p.nlist < comp < 0.25 * len(q) * len(f)
+    assert p.index_build_s > 0
+
+
+def test_index_deterministic_and_rebuilt_after_pickle():
+    f = _sift_like(2500, seed=6)
+    q = _sift_like(50, seed=7).descriptors
+    p = prepare(f)
+    a = p.search2(q)
+    p2 = pickle.loads(pickle.dumps(p))
+    assert p2._index is None  # the index is not pickled ...
+    b = p2.search2(q)  # ... and rebuilt identically
+    for x, y in zip(a[:4], b[:4]):
+        np.testing.assert_array_equal(x, y)
+    assert a[4] == b[4]
+    assert p.index() is p.index()  # built once
+
+
+def test_small_image_has_no_index():
+    p = prepare(_sift_like(500))
+    assert not p.has_index and p.index() is None
+
+
+@pytest.mark.parametrize("kw", [dict(index="hnsw"), dict(nprobe=0), dict(nlist_factor=0.0), dict(seed=-1),
+                                dict(nprobe=1.5)])
+def test_config_validation(kw):
+    with pytest.raises(ConfigError):
+        PreparedConfig(**kw)
