@@ -3,8 +3,8 @@
     python benchmarks/bench_guided.py [--pair 0002 0003] [--sizes 5000 10000 20000 40000] [--repeats 3]
 
 Herz-Jesus-P8 (Strecha, 3072x2048, GT poses) from $GUIDEDMATCH_DATA (default ../shared/data), full
-resolution, SIFT with contrastThreshold=0.01 (~40k features per image). For each feature budget (the
-strongest N by response; 'all' = every feature) the same features are matched by:
+resolution, SIFT with contrastThreshold=0.01 (~40k features per image; --contrast 0.002: ~92k). For each
+feature budget (the strongest N by response; 'all' = every feature) the same features are matched by:
 
 * guidedmatch so+epi+ia (all model fits included, detection excluded), median of --repeats runs
 * guidedmatch brute force (blocked GEMM) + ratio 0.8
@@ -28,14 +28,15 @@ from pathlib import Path
 import numpy as np
 
 
-def _features(path, cache: Path):
+def _features(path, cache: Path, contrast: float = 0.01):
     from guidedmatch.features import Features, detect
 
     cache.mkdir(parents=True, exist_ok=True)
-    f = cache / (Path(path).parent.parent.name + "_" + Path(path).stem + "_sift_ct001.npz")
+    tag = "ct001" if contrast == 0.01 else f"ct{contrast:g}".replace(".", "")
+    f = cache / (Path(path).parent.parent.name + "_" + Path(path).stem + f"_sift_{tag}.npz")
     if f.exists():
         return Features.load(f)
-    feats = detect(path, "sift", contrastThreshold=0.01)
+    feats = detect(path, "sift", contrastThreshold=contrast)
     feats.save(f)
     return feats
 
@@ -68,6 +69,8 @@ def main(argv=None):
     ap.add_argument("--peer-repeats", type=int, default=3, help="timed runs of faiss / FLANN (median reported)")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidedmatch"))
     ap.add_argument("--no-bf", action="store_true", help="skip our brute force (slow at 40k)")
+    ap.add_argument("--contrast", type=float, default=0.01,
+                    help="SIFT contrastThreshold (0.01: ~40k features per image; 0.002: ~92k)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results"))
     args = ap.parse_args(argv)
 
@@ -80,8 +83,9 @@ def main(argv=None):
     if root is None:
         raise SystemExit("no data: set GUIDEDMATCH_DATA (see README)")
     pair = next(p for p in strecha_pairs(root) if Path(p.image1).stem == args.pair[0] and Path(p.image2).stem == args.pair[1])
-    print(f"pair {pair.name}; detecting / loading SIFT (contrastThreshold=0.01) ...", flush=True)
-    F1, F2 = _features(pair.image1, Path(args.cache)), _features(pair.image2, Path(args.cache))
+    print(f"pair {pair.name}; detecting / loading SIFT (contrastThreshold={args.contrast:g}) ...", flush=True)
+    F1 = _features(pair.image1, Path(args.cache), args.contrast)
+    F2 = _features(pair.image2, Path(args.cache), args.contrast)
     print(f"features: {len(F1)} x {len(F2)}", flush=True)
     from guidedmatch.evaluation.peers import faiss_available
 
@@ -142,13 +146,13 @@ def main(argv=None):
     print(f"\nguided run at {rows[-1]['n1']}x{rows[-1]['n2']}: peak traced NumPy memory {g['peak_traced_mb']:.1f} MB "
           f"(+ {g['kernel_outputs_mb']:.1f} MB kernel outputs); timing {g['timing']}")
     out = Path(args.out)
-    write_json(out / "guided.json", dict(meta=run_metadata(seed=0), pair=pair.name,
+    write_json(out / "guided.json", dict(meta=run_metadata(seed=0), pair=pair.name, contrast=args.contrast,
                                          command="python benchmarks/bench_guided.py " + " ".join(sys.argv[1:] if argv is None else argv), rows=rows))
-    _plot(rows, names, out / "guided_scaling.png")
+    _plot(rows, names, out / "guided_scaling.png", args.contrast)
     print(f"wrote {out / 'guided.json'} and {out / 'guided_scaling.png'}")
 
 
-def _plot(rows, names, path):
+def _plot(rows, names, path, contrast=0.01):
     from guidedmatch.plots import _plt, save_figure
 
     plt = _plt()
@@ -168,7 +172,7 @@ def _plot(rows, names, path):
         b.legend(loc="upper left")
     b.set_xlabel("features per image")
     b.grid(True, which="both", alpha=0.3)
-    fig.suptitle("Herz-Jesus-P8 full resolution, SIFT contrastThreshold=0.01")
+    fig.suptitle(f"Herz-Jesus-P8 full resolution, SIFT contrastThreshold={contrast:g}")
     save_figure(fig, path)
 
 

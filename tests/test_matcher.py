@@ -5,7 +5,7 @@ import pytest
 
 from guidedmatch.bruteforce import match_bruteforce
 from guidedmatch.features import Features, detect
-from guidedmatch.matcher import MODES, MatcherConfig, match
+from guidedmatch.matcher import MODES, MatcherConfig, draw_order, match
 
 # small scene: fewer correspondences per update; auto_bf off (below 2000 features guidance is replaced by BF)
 FAST = MatcherConfig(update_every=60, num_updates=2, auto_bf=False)
@@ -296,23 +296,61 @@ def test_pure_rotation_scene_is_H():
         r = match(f1, f2, mode, GUIDED)
         assert r.geometry.verdict == "verified" and r.geometry.model == "H", mode
         assert r.geometry.H is not None and r.geometry.num_inliers > 0.8 * len(r)
+    # planar_recheck: the guided matches (phase >= 1) that are not inliers of the verified H are dropped, counted
+    on = match(f1, f2, "so+epi+ia", GUIDED)
+    off = match(f1, f2, "so+epi+ia", GUIDED.replace(planar_recheck=False))
+    guided_off = (off.flags["phase"] >= 1) & ~off.geometry.inliers
+    assert on.stats.details["dropped_off_homography"] == guided_off.sum() > 0
+    np.testing.assert_array_equal(on.pairs, off.pairs[~guided_off])
+    assert np.all(on.geometry.inliers[on.flags["phase"] >= 1])
+    assert off.stats.details["dropped_off_homography"] == 0
 
 
+# unguided start: ski-rental default (exact for the first queries, then the index), index from the first query, and
+# a rent large enough that this overlapping scene is decided by exact search alone (no index is ever built)
+RENTS = {"default": (GUIDED, "ivf"),  # this small scene: the rent would buy < 64 exact queries, none is paid
+         # never strong enough to guide: exact up to the build cost, then the index
+         "rent": (GUIDED.replace(exact_rent=1.0, max_unguided=0.5, guide_margin=100), "gemm+ivf"),
+         "index": (GUIDED.replace(exact_rent=0.0), "ivf"),
+         "exact": (GUIDED.replace(exact_rent=1.0, max_unguided=0.5), "gemm")}
+
+
+@pytest.mark.parametrize("rent", sorted(RENTS))
 @pytest.mark.parametrize("mode", MODES)
-def test_prepared_images_give_the_same_matches(scene_and_features, mode):
+def test_prepared_images_give_the_same_matches(scene_and_features, mode, rent):
     _, f1, f2 = scene_and_features
-    fresh = match(f1, f2, mode, GUIDED)
+    cfg, used = RENTS[rent]
+    fresh = match(f1, f2, mode, cfg)
     p1, p2 = prepare(f1), prepare(f2)
     for a, b in ((p1, p2), (p1, f2), (f1, p2), (p1, p2)):  # either side, and reused a second time
-        r = match(a, b, mode, GUIDED)
+        r = match(a, b, mode, cfg)
         np.testing.assert_array_equal(r.pairs, fresh.pairs)
         np.testing.assert_array_equal(r.distances, fresh.distances)
         assert r.stats.comparisons == fresh.stats.comparisons
         assert r.geometry.verdict == fresh.geometry.verdict
         np.testing.assert_array_equal(r.geometry.inliers, fresh.geometry.inliers)
     if mode != "bf":
-        assert p2._index is not None  # the index was built once and kept on the prepared image
-        assert match(p1, p2, mode, GUIDED).stats.timing.index_build_s == 0.0
+        assert fresh.stats.details["unguided_search"] == used
+        assert (fresh.stats.timing.index_build_s > 0) == ("ivf" in used)
+        assert (p2._index is not None) == ("ivf" in used)  # built once, when needed, and kept on the prepared image
+        assert match(p1, p2, mode, cfg).stats.timing.index_build_s == 0.0
+
+
+def test_exact_rent_is_capped_by_the_index_build_cost(scene_and_features):
+    """Ski-rental: the first queries (in draw order) are searched exactly until they have cost what building the
+    index costs, every later one through the index -- counted exactly."""
+    _, f1, f2 = scene_and_features
+    p2 = prepare(f2)
+    cfg = GUIDED.replace(exact_rent=1.0, max_unguided=1.0, guide_margin=100)  # never guides: runs to the end
+    r = match(f1, p2, "so+epi+ia", cfg)
+    assert r.stats.details["unguided_search"] == "gemm+ivf"
+    order = draw_order(f1.keypoints[:, 0], max(f1.image_size[0], f1.keypoints[:, 0].max() + 1), cfg.num_groups,
+                       -f1.responses.astype(np.float32))
+    k = -(-p2.build_comparisons // len(f2))  # exact queries: the last exact batch is cut to the rent
+    assert 0 < k < len(f1)
+    ivf = p2.search2(f1.descriptors[order[k:]])[4]
+    assert r.stats.phase_comparisons[0] == k * len(f2) + ivf
+    assert r.stats.phase_queries[0] == len(f1)
 
 
 def test_demo_scene_never_exits_early():
@@ -606,3 +644,32 @@ def test_flags_and_stats_are_the_same_shape_in_every_mode(scene_and_features):
         assert d["method"] == mode and d["comparisons"] == r.stats.comparisons == r.stats["comparisons"]
         assert d["num_model_updates"] == (0 if mode == "bf" else 2) and d["config"]["band_px"] == 5.0
         assert sum(r.stats.phase_queries) == len(f1)
+
+
+def test_planar_rule_keeps_the_matches_off_a_dominant_plane():
+    """planar_recheck drops guided matches off the verdict's H only when the final matches still look planar (H
+    inliers >= h_ratio * F inliers): a 3-D scene with a dominant plane keeps its off-plane matches."""
+    from types import SimpleNamespace
+
+    from guidedmatch.matcher import _planar
+
+    rng = np.random.default_rng(0)
+    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
+    a = np.radians(5.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([1.0, 0.0, 0.0])
+    n = 200
+    on = np.arange(n) < 0.6 * n  # 60 % of the points on the plane z = 5, the rest at depths 3-12
+    X = np.c_[rng.uniform(-2, 2, (n, 2)), np.where(on, 5.0, rng.uniform(3, 12, n))]
+    x1 = (X @ K.T)[:, :2] / X[:, 2:]
+    X2 = X @ R.T + t
+    x2 = (X2 @ K.T)[:, :2] / X2[:, 2:]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
+    H = K @ (R + np.outer(t, [0, 0, 1.0]) / 5.0) @ np.linalg.inv(K)  # the plane n = (0,0,1), d = 5
+    p = np.c_[x1, np.ones(n)] @ H.T
+    n_h = int((np.linalg.norm(p[:, :2] / p[:, 2:] - x2, axis=1) <= 3.0).sum())
+    assert on.sum() <= n_h < 0.7 * n  # the homography is the plane's (a few off-plane points lie near it)
+    assert not _planar(SimpleNamespace(num_inliers=n_h), F, x1, x2)  # F explains all: a 3-D scene
+    assert _planar(SimpleNamespace(num_inliers=n_h), F, x1[on], x2[on])  # the plane alone
+    assert _planar(SimpleNamespace(num_inliers=n_h), None, x1, x2)  # no F to compare with

@@ -3,6 +3,12 @@
 
     python tools/readme_results.py      (after: guidedmatch bench all --out reports,
                                           python benchmarks/bench_guided.py --sizes 5000 10000 20000 all ...)
+
+The collection headline (totals over every Herz-Jesus-P8 pair + the unrelated pairs) from ``guidedmatch bench pairs``:
+
+    python tools/readme_results.py --pairs benchmarks/results/pairs/pairs.json           (print the block)
+    python tools/readme_results.py --pairs benchmarks/results/pairs/pairs.json --write   (put it in README.md between
+                                      <!-- pairs:start --> / <!-- pairs:end -->, or before "## Performance")
 """
 from __future__ import annotations
 
@@ -40,6 +46,49 @@ def perf_table(guided: dict) -> str:
     return "\n".join(rows)
 
 
+PAIRS_START, PAIRS_END = "<!-- pairs:start -->", "<!-- pairs:end -->"
+PAIRS_ROWS = (("so+epi+ia", "**guidedmatch so+epi+ia**"), ("bf", "guidedmatch BF (GEMM)"), ("faiss_flat", "faiss exact 2-NN"),
+              ("faiss_ivf", "COLMAP-style cached IVF-SQ8 (search only)"), ("faiss_ivf+build", "IVF-SQ8, index build amortized"),
+              ("opencv_flann", "OpenCV FLANN (KD-tree)"))
+
+
+def pairs_headline(res: dict, link: str = "benchmarks/results/pairs/pairs.md") -> str:
+    """README block from ``guidedmatch bench pairs`` JSON: per feature set, totals over the scene pairs (time, ratio to
+    the cached IVF search, slowest pair, GT inliers, precision) and the unrelated pairs (verdicts, comparisons)."""
+    meta = res.get("meta", {})
+    out = [PAIRS_START]
+    for name, s in res.get("sets", {}).items():
+        scene, unrel = s["totals"]["scene"], s["totals"]["unrelated"]
+        ns = [v["n"] for v in s["images"].values()]
+        npairs = next(iter(scene.values()))["pairs"]
+        nun = next(iter(unrel.values()))["pairs"] if unrel else 0
+        angles = [r["rotation_deg"] for r in s["rows"] if r.get("rotation_deg") is not None]
+        label = "8192 strongest SIFT features (COLMAP's default count)" if name == "8192" else \
+            f"SIFT `contrastThreshold={name}` ({min(ns) / 1000:.0f}k-{max(ns) / 1000:.0f}k features)"
+        out += ["", f"**{label}**, all {npairs} Herz-Jesus-P8 pairs ({min(angles):.0f}-{max(angles):.0f}° between the cameras) + {nun} unrelated pairs:", "",
+                "| method | total time, all pairs (s) | vs cached IVF search | slowest pair (s, x BF there) | GT inliers | precision "
+                "| unrelated pairs: verdict, % of N1·N2 compared |", "|---|---|---|---|---|---|---|"]
+        ivf = scene.get("faiss_ivf", {}).get("time_s")
+        for key, lab in PAIRS_ROWS:
+            m = scene.get(key)
+            if m is None:
+                continue
+            u = unrel.get(key)
+            uv = (", ".join(f"{v} {k}" for k, v in sorted(u["verdicts"].items())) +
+                  (f", {100 * u['comparisons_frac']:.1f} %" if u.get("comparisons_frac") is not None else "")) if u else "–"
+            prec = f"{100 * m['precision']:.1f} %" if m.get("precision") is not None else "n/a"
+            out.append(f"| {lab} | {m['time_s']:.2f} | {m['time_s'] / ivf:.2f}x | {m['slowest_pair'].rsplit('/', 1)[1]}: "
+                       f"{m['slowest_time_s']:.2f} ({m['slowest_vs_bf']:.1f}x) | {m['gt_inliers']:,} | {prec} | {uv} |")
+    verdict = "verdicts: the matcher's own `result.geometry` (peers: a robust fit on their matches)" \
+        if res.get("verdict_source_ours") == ["matcher"] else "verdicts: a robust fit on the returned matches"
+    out += ["", f"(`{res.get('command', 'guidedmatch bench pairs')}`, commit `{str(meta.get('git_commit'))[:10]}`"
+            f"{' + local changes' if meta.get('git_dirty') else ''}, {str(meta.get('timestamp_utc', ''))[:16]} UTC, "
+            f"{meta.get('cpu_model')}, 2 cores shared with other jobs: times are noisy, same-run ratios hold. Matching only, "
+            f"detection excluded; GT inliers = symmetric epipolar distance < 3 px under the GT cameras; {verdict}. "
+            f"Per pair, targets and the plot against the camera angle: [{link}]({link}).)", PAIRS_END]
+    return "\n".join(out)
+
+
 def section(md: str, title: str) -> str:
     """The first Markdown table after the heading that starts with ``title``."""
     i = md.index(title)
@@ -52,7 +101,22 @@ def main(argv=None) -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reports", default=str(ROOT / "reports"))
+    ap.add_argument("--pairs", metavar="PAIRS_JSON", help="only the collection headline from `guidedmatch bench pairs`")
+    ap.add_argument("--write", action="store_true", help="with --pairs: write the block into README.md")
     args = ap.parse_args(argv)
+    if args.pairs:
+        block = pairs_headline(json.loads(Path(args.pairs).read_text()))
+        if not args.write:
+            print(block)
+            return
+        readme = (ROOT / "README.md").read_text()
+        if PAIRS_START in readme:
+            readme = readme[: readme.index(PAIRS_START)] + block + readme[readme.index(PAIRS_END) + len(PAIRS_END):]
+        else:
+            readme = readme.replace("## Performance", block + "\n\n## Performance", 1)
+        (ROOT / "README.md").write_text(readme)
+        print("README pairs headline updated")
+        return
     rep = Path(args.reports)
     md = (rep / "report.md").read_text()
     res = json.loads((rep / "results.json").read_text())

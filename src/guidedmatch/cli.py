@@ -329,6 +329,10 @@ def cmd_bench(args) -> int:
         from .evaluation import bench_sfm
 
         return int(bench_sfm.main(args) or 0)
+    if args.which == "pairs":
+        from .evaluation import bench_pairs
+
+        return int(bench_pairs.main(args) or 0)
     from .evaluation.bench import run_benchmarks
 
     if args.which == "collection":  # issue 12: guidedmatch colmap vs pycolmap.match_exhaustive on Herz-Jesus-P8
@@ -574,8 +578,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="reproduce the paper's tables side by side with the paper and peers",
                        description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
-    b.add_argument("which", choices=(*BENCHMARKS, "collection", "sfm"),
-                   help="sfm: COLMAP's matcher vs guidedmatch inside COLMAP's mapper, GT poses (Herz-Jesus-P8)")
+    b.add_argument("which", choices=(*BENCHMARKS, "collection", "pairs", "sfm"),
+                   help="pairs: every pair of Herz-Jesus-P8 + unrelated pairs vs COLMAP-style IVF, faiss, FLANN; "
+                   "sfm: COLMAP's matcher vs guidedmatch inside COLMAP's mapper, GT poses (Herz-Jesus-P8)")
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
@@ -584,8 +589,6 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--scene", default=None, help="sfm: scene folder with images/ and gt_dense_cameras/ (Strecha "
                    "layout; default: Herz-Jesus-P8 in the data folder)")
-    b.add_argument("--features", action="append", choices=("8192", "50k"), help="sfm: feature setting(s) "
-                   "(repeatable; default both: COLMAP's 8192 and ~50k with peak_threshold 0.002)")
     b.add_argument("--methods", default=None, help="sfm: comma-separated subset of colmap, colmap_guided, "
                    "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap")
     b.add_argument("--threads", type=_positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
@@ -595,6 +598,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "does not redo (e.g. after --methods X)")
     b.add_argument("--no-e2e", action="store_true", help="sfm: skip the end-to-end comparison (guidedmatch sfm vs "
                    "the pycolmap pipeline with COLMAP's matcher)")
+    from .evaluation.bench_pairs import add_arguments as _pairs_arguments
+
+    _pairs_arguments(b)  # --features / --dense / --oxford of `bench pairs`
     b.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("sfm", help="photos -> COLMAP sparse model (extraction, guided matching, incremental mapping)",

@@ -101,6 +101,10 @@ class MatcherConfig:
     strip_px: float | None = None        # width of the strips indexing image-2 features for the candidate kernel;
                                          # None: chosen from the lines' slopes and the point density (speed only)
     recheck: bool = True                 # beyond the paper: re-test early matches against the final models
+    planar_recheck: bool = True          # beyond the paper: when the verdict is a homography (planar scene / pure
+                                         # rotation: F and its band constrain nothing along the plane) and the final
+                                         # matches still look planar (H inliers >= h_ratio * F inliers), drop the guided
+                                         # matches that are not its inliers (Oxford wall 1-2: 2.2 % -> 0.6 % wrong)
     outside_window: Literal["drop", "band"] = "band"  # image-1 feature outside the SO window ω*: "drop" (paper
                                          # §III-B.2) or, when an F model exists and the feature lies within the x-extent
                                          # of the F inliers, "band": match it in the epipolar band only (beyond the paper)
@@ -123,6 +127,12 @@ class MatcherConfig:
                                          # index of image 2, 0.5 with exact search (binary descriptors: no index)
     unguided_index: bool = True          # unguided start (start="verified") searches a faiss IVF index of image 2
                                          # (guidedmatch.prepared; built once per image) instead of exact GEMM
+    exact_rent: float = 0.18             # ski-rental: the unguided start searches exactly (GEMM) for its first queries,
+                                         # up to min(index build cost, exact_rent * exit budget) comparisons (added to
+                                         # the budget: an unrelated pair stops at <= 2.5 * 1.18 < 3 % of N1*N2), then
+                                         # the IVF index (built then if not prepared): ~40k SIFT adjacent Herz-Jesus
+                                         # pairs are decided within that and never build one; no rent when it buys
+                                         # fewer than max(batch_size, 2 first_check) queries (0: index first)
     unverified: Literal["drop", "keep"] = "drop"  # guided modes, verdict "no-overlap": return no matches (counted in
                                          # stats.details["dropped_unverified"]) or keep the unguided ones; mode "bf"
                                          # always keeps its matches (the baseline)
@@ -154,6 +164,7 @@ class MatcherConfig:
         check_number(o, "batch_size", self.batch_size, lo=1, integer=True)
         check_number(o, "strip_px", self.strip_px, lo=0, lo_open=True, allow_none=True)
         check_bool(o, "recheck", self.recheck)
+        check_bool(o, "planar_recheck", self.planar_recheck)
         check_choice(o, "outside_window", self.outside_window, ("drop", "band"))
         check_number(o, "min_model_matches", self.min_model_matches, lo=8, integer=True)
         check_number(o, "seed", self.seed, lo=0, integer=True)
@@ -164,6 +175,7 @@ class MatcherConfig:
         check_number(o, "guide_margin", self.guide_margin, lo=1, hi=100)
         check_number(o, "max_unguided", self.max_unguided, lo=0, lo_open=True, hi=1, allow_none=True)
         check_bool(o, "unguided_index", self.unguided_index)
+        check_number(o, "exact_rent", self.exact_rent, lo=0, hi=1)
         check_choice(o, "unverified", self.unverified, ("drop", "keep"))
         check_bool(o, "auto_bf", self.auto_bf)
         check_number(o, "bf_below_float", self.bf_below_float, lo=0, integer=True)
@@ -175,7 +187,7 @@ class MatcherConfig:
         printed alignment (c), the first model after ``update_every`` unguided correspondences (exact search, no
         verdict gate, no early exit), no automatic brute force, matches kept whatever the verdict. The two-view
         verdict is still reported."""
-        return cls(**{"recheck": False, "outside_window": "drop", "one_to_one": False, "alignment": "c",
+        return cls(**{"recheck": False, "planar_recheck": False, "outside_window": "drop", "one_to_one": False, "alignment": "c",
                       "start": "paper", "auto_bf": False, "unverified": "keep", **overrides})
 
     def replace(self, **changes) -> "MatcherConfig":

@@ -418,6 +418,96 @@ def strecha_pairs(root: str | os.PathLike | None = None, with_sizes: bool = True
     return pairs
 
 
+STRECHA_SCENE_DIR = Path("pose_pairs") / "strecha"
+
+
+@dataclass(frozen=True, eq=False)
+class StrechaCamera:
+    """One calibrated Strecha camera (``<image>.camera`` file).
+
+    Attributes:
+        K: ``(3, 3)`` intrinsics (pixels). R_wc: ``(3, 3)`` world -> camera rotation. t_wc: ``(3,)`` world -> camera
+        translation (metres): ``X_cam = R_wc X_world + t_wc``. center: ``(3,)`` camera centre in world coordinates.
+        size: ``(w, h)`` pixels. image: path of the image.
+    """
+
+    K: np.ndarray
+    R_wc: np.ndarray
+    t_wc: np.ndarray
+    center: np.ndarray
+    size: tuple[int, int]
+    image: Path
+
+
+def read_strecha_camera(path: str | os.PathLike, image: str | os.PathLike | None = None) -> StrechaCamera:
+    """Parse a Strecha ``.camera`` file: K (3 lines), distortion (1 line, must be 0), R camera-to-world (3 lines),
+    centre C (1 line), ``w h`` (see ``shared/data/SOURCES.md``); projection ``x ~ K [R^T | -R^T C] X``.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: not 9 lines of numbers, or non-zero distortion.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise _missing(path, "Strecha camera file")
+    rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    if len(rows) != 9:
+        raise ValueError(f"{path}: expected 9 lines of numbers, got {len(rows)}")
+    try:
+        K = np.array(rows[0:3], dtype=np.float64)
+        dist = np.array(rows[3], dtype=np.float64)
+        R = np.array(rows[4:7], dtype=np.float64)
+        C = np.array(rows[7], dtype=np.float64)
+        w, h = (int(float(v)) for v in rows[8])
+    except ValueError as exc:
+        raise ValueError(f"{path}: malformed camera file ({exc})") from None
+    if K.shape != (3, 3) or R.shape != (3, 3) or C.shape != (3,):
+        raise ValueError(f"{path}: malformed camera file (K {K.shape}, R {R.shape}, C {C.shape})")
+    if np.any(dist != 0):
+        raise ValueError(f"{path}: non-zero radial distortion {dist.tolist()} is not supported")
+    R_wc = R.T
+    return StrechaCamera(K, R_wc, -R_wc @ C, C, (w, h), Path(image) if image is not None else path)
+
+
+def relative_pose(cam1: StrechaCamera, cam2: StrechaCamera) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` with ``X_cam2 = R X_cam1 + t`` (the convention of :class:`EpipolarGT`)."""
+    R = cam2.R_wc @ cam1.R_wc.T
+    return R, cam2.t_wc - R @ cam1.t_wc
+
+
+def camera_angles(cam1: StrechaCamera, cam2: StrechaCamera) -> dict[str, float]:
+    """Angles between two cameras, degrees: ``rotation_deg`` (angle of the relative rotation) and
+    ``axis_deg`` (angle between the optical axes)."""
+    R, _ = relative_pose(cam1, cam2)
+    rot = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+    z1, z2 = cam1.R_wc[2], cam2.R_wc[2]  # optical axes in world coordinates (rows of R_wc)
+    axis = float(np.degrees(np.arccos(np.clip(z1 @ z2, -1, 1))))
+    return {"rotation_deg": rot, "axis_deg": axis}
+
+
+def strecha_scene_pairs(root: str | os.PathLike | None = None, scene: str = "Herz-Jesus-P8") -> list[Pair]:
+    """Every pair ``(i, j), i < j`` of a Strecha scene, GT from its ``gt_dense_cameras/*.camera`` files
+    (Herz-Jesus-P8: 8 images, 28 pairs; :func:`strecha_pairs` lists only 18 of them).
+
+    ``meta`` holds ``rotation_deg`` / ``axis_deg`` (:func:`camera_angles`) and the image sizes from the camera files.
+    The GT is :meth:`EpipolarGT.from_pose` with :func:`relative_pose`, as in the pairs file.
+    """
+    base = _require_root(root) / STRECHA_SCENE_DIR / scene
+    if not (base / "images").is_dir():
+        raise _missing(base / "images", f"Strecha scene {scene!r}")
+    images = sorted(p for p in (base / "images").iterdir() if p.suffix.lower() in _IMAGE_EXTS)
+    cams = [read_strecha_camera(base / "gt_dense_cameras" / (p.name + ".camera"), p) for p in images]
+    pairs = []
+    for a in range(len(cams)):
+        for b in range(a + 1, len(cams)):
+            c1, c2 = cams[a], cams[b]
+            R, t = relative_pose(c1, c2)
+            gt = EpipolarGT.from_pose(c1.K, c2.K, R, t, c1.size, c2.size)
+            pairs.append(Pair(f"strecha/{scene}/{c1.image.stem}-{c2.image.stem}", c1.image, c2.image, gt,
+                              {"dataset": "strecha", "scene": scene, "size1": c1.size, "size2": c2.size,
+                               **camera_angles(c1, c2)}))
+    return pairs
+
+
 # --------------------------------------------------------------------------------------------------
 # Synthetic set (Sec. IV-B, after Dosovitskiy et al. 2016)
 # --------------------------------------------------------------------------------------------------

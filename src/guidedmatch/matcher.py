@@ -22,16 +22,20 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    x-intervals and drawn round-robin (within a group strongest response first, else a seeded random order), so the
    first matches cover the whole image width.
 2. **Unguided start** (§III-A; the gate and the exit are beyond the paper, issue 11, :meth:`_GuidedRun.unguided_start`):
-   drawn features are matched in mini-batches against all of image 2 -- through the faiss IVF index of image 2
-   (:class:`~guidedmatch.prepared.UnguidedSearch`, ~2 sqrt(N2) + 4 cells per query), or exactly (GEMM / popcount;
-   binary descriptors, small images, ``unguided_index=False``). These correspondences are the *evidence*: no model
-   selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
+   drawn features are matched in mini-batches against all of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`):
+   exactly (GEMM) for the first queries, until they have cost min(building image 2's index, ``exact_rent`` of the
+   exit budget; added to it; none when that buys fewer than max(``batch_size``, 2 ``first_check``) queries)
+   comparisons, then through the faiss IVF index of image 2 (~2 sqrt(N2) + 4 cells per query; built then unless
+   image 2 was prepared) -- ski-rental: a well-overlapping pair is decided before the index is needed and never
+   builds one, and the rule is the same for prepared and fresh images, so are the matches. Exact only: binary
+   descriptors (popcount), small images, ``unguided_index=False``. These correspondences are the *evidence*: no
+   model selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
    :func:`~guidedmatch.geometry.two_view_geometry` decides whether they share a geometry beyond chance; the first
    model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
-   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index)
-   without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are
-   not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after
-   ``update_every`` exact unguided correspondences, no gate, no exit.
+   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus
+   the exact rent without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining
+   features are not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first
+   model after ``update_every`` exact unguided correspondences, no gate, no exit.
 3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit, then after every ``update_every`` (200)
    newly accepted correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 fits
    in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E; validated over the
@@ -46,7 +50,10 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    feature's candidates are the image-2 features in its admissible x-range (aligned coordinates) and within
    ``band_px`` of its epipolar line (:func:`search_regions`).
 6. **Re-check** (beyond the paper, ``recheck``): matches accepted before the final models are tested against the
-   final x-range and band and dropped when outside (the fix the paper suggests in §IV-C).
+   final x-range and band and dropped when outside (the fix the paper suggests in §IV-C). When the verdict is a
+   homography (planar scene or pure rotation, ``planar_recheck``) and the final matches still look planar
+   (:func:`_planar`), guided matches that are not its inliers are dropped at step 8
+   (``details["dropped_off_homography"]``): F's band does not constrain matches along the plane.
 7. **One-to-one** (beyond the paper, :func:`one_to_one`) and the optional **mutual check** (:func:`mutual_check`).
 8. **Result**: matches sorted by image-1 index, per-match flags (incl. the spatial-order probability within the final
    match set, Talker Eq. 12), a typed :class:`~guidedmatch.results.MatchStats` (``details``: ``unguided_search``,
@@ -407,7 +414,7 @@ class _GuidedRun:
         self.checks: list[dict] = []            # verdict checks of the unguided start
         self.decision = None                    # the last TwoViewGeometry decided on unguided evidence
         self.early_exit: str | None = None
-        self.unguided_search = None             # "ivf" | "gemm" | "popcount"
+        self.unguided_search = None             # "gemm" | "gemm+ivf" | "ivf" | "popcount" (UnguidedSearch.used)
         self.unguided_comparisons = 0
         self.last_alignment = None              # SafeAlignment of the latest model fit (mode IA)
         self.fallbacks: list[Fallback] = []
@@ -512,10 +519,12 @@ class _GuidedRun:
         they are; the verdict on them is only reported. ``start="verified"``: the unguided correspondences are the
         evidence (no model selected them). After ``first_check`` of them, and each time they have grown by
         ``check_growth``, :func:`~guidedmatch.geometry.two_view_geometry` decides; the first model is fitted as soon
-        as it says "verified" -- a model fitted on too little evidence never guides. The search is the approximate
-        index of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`, ``unguided_index``) or exact. When the
-        start has spent ``max_unguided * N1 * N2`` comparisons without verified evidence it stops (early exit, verdict
-        from the last check: "no-overlap" / "too-few-matches"), the remaining features are not matched.
+        as it says "verified" -- a model fitted on too little evidence never guides. The search is exact for the first
+        ``min(index build comparisons, exact_rent * exit budget)`` comparisons, then the approximate index of image 2
+        (:class:`~guidedmatch.prepared.UnguidedSearch`, ``unguided_index``, ``exact_rent``). When the
+        start has spent ``max_unguided * N1 * N2`` comparisons plus the exact rent without verified evidence it stops
+        (early exit, verdict from the last check: "no-overlap" / "too-few-matches"), the remaining features are not
+        matched.
         """
         from .prepared import UnguidedSearch
 
@@ -523,29 +532,35 @@ class _GuidedRun:
         n1, n2 = len(self.d1), len(self.d2)
         paper = c.start == "paper"
         kind = UnguidedSearch.choose(self.p2, use_index=c.unguided_index and not paper)
-        if kind == "ivf" and self.p2._index is None:
-            t0 = time.perf_counter()
-            self.p2.index()
-            self.timing["index_build_s"] += time.perf_counter() - t0
-        self.unguided_search = kind
         frac = c.max_unguided if c.max_unguided is not None else (0.025 if kind == "ivf" else 0.5)
         budget = frac * n1 * n2
-        bs = c.batch_size if kind != "ivf" else max(c.batch_size, 256)  # an index search has no GEMM to fill
+        # ski-rental: exact search until it has cost what building the index costs (capped at exact_rent of the exit
+        # budget), the index after -- the same rule whether or not image 2 was prepared, so the same matches
+        rent = min(float(self.p2.build_comparisons), c.exact_rent * budget) if kind == "ivf" else 0.0
+        if rent < max(c.batch_size, 2 * c.first_check) * n2:
+            rent = 0.0  # too few exact queries to reach a first verdict check: pure overhead (8192 SIFT: 37 queries)
+        budget += rent  # the rent is not taken from the index's evidence budget: the exit at <= (1 + exact_rent) frac
         models = None
         total = ptr = 0
         next_check = max(c.first_check, c.min_model_matches)
         checked_at = -1
-        with UnguidedSearch(self.p1, self.p2, kind) as search:
+        with UnguidedSearch(self.p1, self.p2, kind, exact_budget=rent) as search:
             while ptr < len(order):
-                n = bs
+                if search.exact:
+                    n = c.batch_size
+                    if kind == "ivf":  # the last exact batch is cut to the rent
+                        n = int(min(n, max(1, np.ceil((rent - search.exact_comparisons) / max(n2, 1)))))
+                else:
+                    n = max(c.batch_size, 256)  # an index search has no GEMM to fill
                 if not paper and ptr:  # the last batch before the budget is cut to fit it (+ <= 8 queries)
-                    per_query = self.unguided_comparisons / ptr
-                    n = int(min(bs, max(8, np.ceil((budget - self.unguided_comparisons) / max(per_query, 1.0)))))
+                    left = (budget - self.unguided_comparisons) / max(search.per_query(), 1.0)
+                    n = int(min(n, max(8, np.ceil(left))))
                 batch = order[ptr: ptr + n]
                 ptr += len(batch)
                 t0 = time.perf_counter()
                 acc = self.unguided_batch(batch, search)
                 self.timing["initial_bf_s"] += time.perf_counter() - t0
+                self.unguided_search = search.used
                 got.add(acc, 0)
                 total += len(acc.q)
                 if paper:
@@ -567,10 +582,13 @@ class _GuidedRun:
                     next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
                 if self.unguided_comparisons >= budget and ptr < len(order):
                     self.early_exit = (f"unguided start spent {self.unguided_comparisons / max(n1 * n2, 1):.1%} of "
-                                       f"N1*N2 ({frac:.1%} allowed) on {ptr} of {n1} features without evidence "
-                                       f"strong enough to guide; the remaining {len(order) - ptr} features are not "
-                                       "matched")
+                                       f"N1*N2 ({budget / max(n1 * n2, 1):.1%} allowed) on {ptr} of {n1} features "
+                                       f"without evidence strong enough to guide; the remaining {len(order) - ptr} "
+                                       "features are not matched")
                     break
+            self.timing["index_build_s"] += search.index_build_s
+            self.timing["initial_bf_s"] -= search.index_build_s
+            self.unguided_search = search.used
         if models is None:
             if checked_at != total or self.decision is None:
                 self.decide(got)  # the verdict on all the evidence there is
@@ -907,6 +925,17 @@ class _GuidedRun:
             self.decide(got)
         final_F = models.F if models is not None and models.F is not None else None
         geometry = report_geometry(self.decision, x1, x2, F=final_F, config=VerdictConfig(seed=self.c.seed))
+        dropped_planar = 0
+        planar = self.c.planar_recheck and geometry and geometry.model == "H" and len(q)
+        if planar and _planar(geometry, final_F, x1, x2):
+            # a planar scene (or pure rotation): the epipolar band of an F fitted to it constrains nothing along the
+            # plane, the verified homography does -- guided matches off it are dropped (unguided ones stay, as in BF)
+            keep = (flags["phase"] == 0) | geometry.inliers
+            dropped_planar = int((~keep).sum())
+            if dropped_planar:
+                q, j, d = q[keep], j[keep], d[keep]
+                flags = {k: v[keep] for k, v in flags.items()}
+                geometry = geometry.with_inliers(geometry.inliers[keep])
         self.timing["verdict_s"] += time.perf_counter() - t0
         q, j, d, flags, geometry, dropped_unverified = _drop_unverified(self.c, q, j, d, flags, geometry,
                                                                         self.fallback)
@@ -928,9 +957,25 @@ class _GuidedRun:
             phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c,
             details=dict(unguided_search=self.unguided_search, verdict_checks=tuple(self.checks),
                          early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons),
-                         dropped_unverified=dropped_unverified))
+                         dropped_unverified=dropped_unverified, dropped_off_homography=dropped_planar))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         return MatchResult(pairs, d, stats, flags, geometry)
+
+
+def _planar(geometry, F, x1, x2) -> bool:
+    """Whether the final matches ``x1 <-> x2`` still look planar: the verdict's homography explains at least
+    ``h_ratio`` (COLMAP's rule, :class:`~guidedmatch.geometry.VerdictConfig`) as many of them as the final ``F``
+    (Sampson distance within the same threshold). An "H" verdict taken on the few unguided correspondences of a 3-D
+    scene with a dominant plane (Herz-Jesus 0004-0005 at ~40k) fails it: the final matches off the plane are F
+    inliers, and they are kept."""
+    from .geometry import VerdictConfig, sampson_distance
+
+    if F is None or not np.all(np.isfinite(F)):
+        return True  # no F to compare with: the homography is the only model
+    c = VerdictConfig()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nf = int((sampson_distance(np.asarray(F, np.float64), x1, x2) <= c.threshold_px).sum())
+    return geometry.num_inliers >= c.h_ratio * nf
 
 
 def _drop_unverified(c: MatcherConfig, q, j, d, flags: dict, geometry, report):

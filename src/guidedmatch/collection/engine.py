@@ -47,7 +47,8 @@ Memory bound
 * Each worker process (and this process when in-process): the image cache, at most ``cache_mb`` MB of loaded
   images (estimated as their array bytes: keypoints 16 B + descriptors 4 B x D per feature, plus, with
   ``guidedmatch.prepared``, the prepared image's arrays and 4 B x D for its approximate index: ~1.2 KB per SIFT
-  feature in all, ~10 MB per 8192-feature image, so the 1024 MB default holds ~100 such images), but never fewer than the two images of the pair being matched; plus the matcher's
+  feature in all, ~10 MB per 8192-feature image, so the 1024 MB default holds ~100 such images),
+  but never fewer than the two images of the pair being matched; plus the matcher's
   working memory for one pair.
 
 Resume and failures
@@ -65,10 +66,8 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import dataclasses
 import json
 import logging
-import math
 import os
 import pickle
 import sys
@@ -109,7 +108,7 @@ class CollectionConfig:
     verdict: VerdictConfig = field(default_factory=VerdictConfig)   # two-view verdict when the matcher gives none
     workers: int | None = None                 # None: auto (module doc); 0: in-process; N: local cluster of N processes
     scheduler: str | None = None               # address of a running Dask scheduler, e.g. "tcp://10.0.0.1:8786"
-    retries: int = 1                           # extra attempts of a failed pair (run alone) before it is reported failed
+    retries: int = 1                           # extra attempts of a failed pair before it is reported failed
     progress: bool = True                      # tqdm progress bar (pairs/s, ETA) on stderr
     log_path: str | None = None                # JSON lines: one line per pair, then one summary line (appended)
     chunk_pairs: int = 16                      # pairs per task; a task's pairs share one anchor image
@@ -125,7 +124,8 @@ class CollectionConfig:
         object.__setattr__(self, "verdict", config_from(VerdictConfig, self.verdict))
         check_number(own, "workers", self.workers, lo=0, integer=True, allow_none=True)
         if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
-            raise ConfigError(f"{own}.scheduler must be an address like 'tcp://host:8786' or None; got {self.scheduler!r}")
+            raise ConfigError(f"{own}.scheduler must be an address like 'tcp://host:8786' or None; "
+                              f"got {self.scheduler!r}")
         if self.scheduler is not None and self.workers is not None:
             raise ConfigError(f"{own}: give workers (a local cluster) or scheduler (a running one), not both")
         check_number(own, "retries", self.retries, lo=0, integer=True)
@@ -270,7 +270,8 @@ class _ImageCache:
             t0 = time.perf_counter()
             feats = self.source.load(name)
             prepared = feats if self.prepare is None else self.prepare(feats)
-            item = _CachedImage(feats, prepared, _nbytes(feats) + (0 if prepared is feats else _prepared_nbytes(prepared)))
+            extra = 0 if prepared is feats else _prepared_nbytes(prepared)
+            item = _CachedImage(feats, prepared, _nbytes(feats) + extra)
             self.load_s += time.perf_counter() - t0
             self.loads += 1
             self.items[name] = item
@@ -555,7 +556,8 @@ def _choose_backend(cfg: CollectionConfig, client, work: int) -> tuple[str, int 
     if cores < 2:
         return "in-process", 0, f"auto: {cores} usable core"
     if work <= cfg.inprocess_max_work:
-        return "in-process", 0, f"auto: work {work:,} <= inprocess_max_work {cfg.inprocess_max_work:,} ({INPROCESS_RULE})"
+        return "in-process", 0, (f"auto: work {work:,} <= inprocess_max_work {cfg.inprocess_max_work:,} "
+                                 f"({INPROCESS_RULE})")
     return "local-cluster", cores, (f"auto: work {work:,} > inprocess_max_work {cfg.inprocess_max_work:,}: "
                                     f"one single-threaded worker per usable core ({cores})")
 

@@ -392,7 +392,14 @@ def main(args) -> int:
 
             raise InputError("no scene given and no data folder found (set GUIDEDMATCH_DATA or pass --scene)")
         scene = root / DEFAULT_SCENE
+    from ..errors import ConfigError
+
     settings = args.features or ["8192", "50k"]
+    if "both" in settings:
+        settings = ["8192", "50k"]
+    bad_settings = sorted(set(settings) - {"8192", "50k"})
+    if bad_settings:
+        raise ConfigError(f"bench sfm --features takes 8192 and/or 50k; got {', '.join(bad_settings)}")
     methods = args.methods.split(",") if getattr(args, "methods", None) else None
     if methods:
         bad = [m for m in methods if m not in COLMAP_METHODS and m.rsplit("+", 1)[-1] not in GEOMETRIES]

@@ -13,6 +13,11 @@ peer               what                                                 ``compar
                                                                         distances it evaluated
 ``faiss_flat``     faiss ``IndexFlatL2`` / ``IndexBinaryFlat`` exact     ``N1 * N2`` (exact)
                    2-NN + ratio (needs the ``bench`` extra)
+``faiss_ivf``      COLMAP-style cached index: faiss                     exact count: coarse-quantizer
+                   ``IndexIVFScalarQuantizer`` (``QT_8bit_direct``,     distances (``nlist`` per query)
+                   ``nlist = 4 sqrt(N)``, ``nprobe = 8``), one index    + codes scanned in the probed
+                   per image (:func:`build_ivf_index`), 2-NN both ways, lists (faiss ``indexIVF_stats``),
+                   ratio + max distance + cross-check                   both directions
 ``gms``            1-NN (``BFMatcher.match``) filtered by               ``N1 * N2`` (the 1-NN pass)
                    ``cv2.xfeatures2d.matchGMS`` (Bian et al. 2017)
 =================  ===================================================  =============================
@@ -206,6 +211,155 @@ def match_faiss(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO) -> MatchR
     return _result("faiss_flat", pairs, dist, n1 * n2, dt, n1, n2, **extra)
 
 
+COLMAP_MAX_DISTANCE = 0.7 * 512.0  # COLMAP SiftMatchingOptions.max_distance (0.7) on descriptors of norm 512 (L2)
+COLMAP_NPROBE = 8  # inverted lists probed per query (COLMAP's CPU matcher)
+COLMAP_MIN_INDEXED = 512  # COLMAP indexes fewer descriptors with a flat (exact) index
+
+
+class IVFIndex:
+    """A cached per-image faiss index, as COLMAP's CPU matcher keeps one per image (:func:`build_ivf_index`).
+
+    Attributes:
+        index: the faiss index (``IndexIVFScalarQuantizer`` with ``QT_8bit_direct``, or ``IndexFlatL2`` below
+            ``COLMAP_MIN_INDEXED`` descriptors). descriptors: ``(N, 128) float32`` the indexed descriptors.
+        nlist: number of inverted lists (0 for a flat index). nprobe: lists probed per query.
+        build_s: seconds spent training + adding (``time.perf_counter``).
+    """
+
+    def __init__(self, index, descriptors: np.ndarray, nlist: int, nprobe: int, build_s: float):
+        self.index, self.descriptors, self.nlist, self.nprobe, self.build_s = index, descriptors, nlist, nprobe, build_s
+
+    def __len__(self) -> int:
+        return len(self.descriptors)
+
+    def search(self, queries: np.ndarray, k: int = 2) -> tuple[np.ndarray, np.ndarray, int]:
+        """``(D (Q,k) Euclidean distances, I (Q,k) int64, comparisons)``; missing neighbours get ``I = -1``,
+        ``D = inf``. ``comparisons`` = descriptor distances evaluated: ``Q * nlist`` (coarse quantizer) + the codes
+        scanned in the probed lists (faiss ``indexIVF_stats.ndis``); ``Q * N`` for a flat index."""
+        faiss = _import_faiss()
+        q = np.ascontiguousarray(queries, np.float32)
+        k = min(k, len(self))
+        if self.nlist:
+            faiss.cvar.indexIVF_stats.reset()
+            D, I = self.index.search(q, k)
+            comparisons = len(q) * self.nlist + int(faiss.cvar.indexIVF_stats.ndis)
+        else:
+            D, I = self.index.search(q, k)
+            comparisons = len(q) * len(self)
+        I = I.astype(np.int64)
+        D = np.sqrt(np.maximum(D.astype(np.float64), 0.0))
+        D[I < 0] = np.inf
+        return D, I, comparisons
+
+
+def build_ivf_index(f: Any, *, nprobe: int = COLMAP_NPROBE, seed: int = 1234) -> IVFIndex:
+    """Build COLMAP's cached CPU-matcher index of one image's float descriptors (once per image, reused per pair).
+
+    ``IndexIVFScalarQuantizer(IndexFlatL2, d, nlist = int(4 sqrt(N)), QT_8bit_direct, L2)``, trained (k-means
+    of the coarse quantizer, ``min_points_per_centroid = 1`` as COLMAP, seeded) and filled with all ``N``
+    descriptors; ``nprobe`` lists probed per query. ``QT_8bit_direct`` stores each component as ``uint8``
+    unchanged, so the distances are exact for byte-valued descriptors (OpenCV / COLMAP SIFT, values 0..255):
+    only the inverted-list probing is approximate. Fewer than ``COLMAP_MIN_INDEXED`` descriptors: a flat index.
+    """
+    faiss = _import_faiss()
+    d, binary = _descriptors(f)
+    if binary:
+        raise ValueError("build_ivf_index needs float descriptors (the IVF-SQ8 index is for SIFT-like vectors)")
+    t0 = time.perf_counter()
+    n, dim = d.shape
+    if n >= COLMAP_MIN_INDEXED:
+        nlist = int(4 * np.sqrt(n))
+        quantizer = faiss.IndexFlatL2(dim)
+        # encode_residual=False: QT_8bit_direct stores the raw byte values (residuals to the centroid would be
+        # negative and clipped -- wrong distances)
+        index = faiss.IndexIVFScalarQuantizer(quantizer, dim, nlist, faiss.ScalarQuantizer.QT_8bit_direct,
+                                              faiss.METRIC_L2, False)
+        index.cp.min_points_per_centroid = 1
+        index.cp.seed = int(seed)
+        index.train(d)
+        index.add(d)
+        index.nprobe = int(nprobe)
+    else:
+        nlist, quantizer = 0, None
+        index = faiss.IndexFlatL2(dim)
+        if n:
+            index.add(d)
+    out = IVFIndex(index, d, nlist, int(nprobe) if nlist else 0, time.perf_counter() - t0)
+    out.quantizer = quantizer  # the coarse quantizer must live as long as the index
+    return out
+
+
+def _one_way(D: np.ndarray, I: np.ndarray, ratio: float | None, max_distance: float | None) -> np.ndarray:
+    """Best neighbour per query passing the ratio and max-distance tests, else -1 (COLMAP's one-way rule)."""
+    nn = I[:, 0].copy() if I.shape[1] else np.full(len(I), -1, np.int64)
+    d1 = D[:, 0] if D.shape[1] else np.full(len(I), np.inf)
+    d2 = D[:, 1] if D.shape[1] > 1 else np.full(len(I), np.inf)
+    ok = np.isfinite(d1) & (nn >= 0)
+    if max_distance is not None:
+        ok &= d1 <= max_distance
+    if ratio is not None:
+        ok &= d1 < ratio * d2
+    nn[~ok] = -1
+    return nn
+
+
+def match_faiss_ivf(f1: Any, f2: Any, ratio: float | None = DEFAULT_RATIO, *, index1: IVFIndex | None = None,
+                    index2: IVFIndex | None = None, cross_check: bool = True,
+                    max_distance: float | None = COLMAP_MAX_DISTANCE, nprobe: int = COLMAP_NPROBE) -> MatchResult:
+    """Match as COLMAP's CPU matcher does with its cached faiss IVF-SQ8 indexes: 2-NN of image 1 in image 2's index;
+    keep ``i -> j`` when ``d1 <= max_distance`` and ``d1 < ratio * d2`` (Euclidean); with ``cross_check`` also
+    search image 2 in image 1's index and keep only mutual pairs.
+
+    ``index1`` / ``index2``: prebuilt :func:`build_ivf_index` of each image (the cached case; ``time_s`` then is
+    search + selection only). Missing ones are built here and their build time is added to ``time_s`` and reported
+    in ``stats.details["build_s"]`` (``search_s`` = the rest). ``max_distance`` = COLMAP's 0.7 on unit descriptors, times 512 (OpenCV and COLMAP SIFT
+    descriptors have norm ~512). Returns pairs sorted by image-1 index.
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> d = rng.integers(0, 60, (600, 128)).astype(np.float32)
+    >>> r = match_faiss_ivf(d, d[::-1].copy())
+    >>> bool(np.all(r.pairs[:, 1] == 599 - r.pairs[:, 0])), len(r) > 550
+    (True, True)
+    """
+    d1, d2, binary = _pair_descriptors(f1, f2)
+    if binary:
+        raise ValueError("match_faiss_ivf needs float descriptors")
+    n1, n2 = len(d1), len(d2)
+    extra = {"metric": "l2", "ratio": ratio, "max_distance": max_distance, "cross_check": bool(cross_check),
+             "index": "IndexIVFScalarQuantizer(QT_8bit_direct)"}
+    build_s = 0.0
+    if index2 is None and n2:
+        index2 = build_ivf_index(d2, nprobe=nprobe)
+        build_s += index2.build_s
+    if cross_check and index1 is None and n1:
+        index1 = build_ivf_index(d1, nprobe=nprobe)
+        build_s += index1.build_s
+    faiss = _import_faiss()
+    extra["threads"] = faiss.omp_get_max_threads()
+    t0 = time.perf_counter()
+    if n1 == 0 or n2 == 0:
+        return _empty("faiss_ivf", n1, n2, t0 - build_s, 0, build_s=build_s, search_s=0.0, nlist=0, nprobe=0, **extra)
+    for idx, n in ((index2, n2), (index1, n1)):
+        if idx is not None and len(idx) != n:
+            raise ValueError(f"a prebuilt index holds {len(idx)} descriptors, the features {n}")
+    D, I, comp = index2.search(d1, 2)
+    fwd = _one_way(D, I, ratio, max_distance)
+    if cross_check:
+        Db, Ib, comp_b = index1.search(d2, 2)
+        comp += comp_b
+        bwd = _one_way(Db, Ib, ratio, max_distance)
+        q = np.flatnonzero(fwd >= 0)
+        q = q[bwd[fwd[q]] == q]
+    else:
+        q = np.flatnonzero(fwd >= 0)
+    pairs = np.stack([q, fwd[q]], axis=1).astype(np.int64) if len(q) else empty_pairs()
+    dist = D[q, 0].astype(np.float32)
+    search_s = time.perf_counter() - t0
+    return _result("faiss_ivf", pairs, dist, int(comp), search_s + build_s, n1, n2, search_s=search_s, build_s=build_s,
+                   nlist=index2.nlist, nprobe=index2.nprobe, **extra)
+
+
 def match_gms(f1: Any, f2: Any, *, with_rotation: bool = False, with_scale: bool = False,
               threshold_factor: float = 6.0) -> MatchResult:
     """GMS (grid-based motion statistics, Bian et al. CVPR 2017) on exact 1-NN matches.
@@ -262,7 +416,8 @@ def _cv_keypoints(f: Any) -> list:
                          float(an[i]) if an is not None else -1.0) for i, (x, y) in enumerate(kp)]
 
 
-#: Peer name -> matcher ``fn(f1, f2) -> MatchResult`` with default settings.
+#: Peer name -> matcher ``fn(f1, f2) -> MatchResult`` with default settings. ``match_faiss_ivf`` is not listed: its
+#: point is the per-image index cached across pairs (:func:`build_ivf_index`), which a per-pair loop would rebuild.
 PEERS: dict[str, Callable[..., MatchResult]] = {
     "opencv_bf": match_opencv_bf,
     "opencv_flann": match_opencv_flann,
