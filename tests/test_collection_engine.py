@@ -553,9 +553,9 @@ def test_cli_hloc_round_trip_equals_in_memory_matches(views, tmp_path):
     assert r2.returncode == 0 and "3 skipped" in r2.stdout, r2.stdout + r2.stderr
 
 
-def test_cli_geometry_colmap_runs_colmaps_verification(rendered_db, tmp_path):
-    """--geometry colmap: raw matches from the engine, then pycolmap's verification writes the two-view geometries;
-    the matches are the same as with our geometry."""
+def _two_copies_and_pairs(rendered_db, tmp_path, n):
+    """Two copies ``a.db``, ``b.db`` of the rendered collection's fresh database and a pairs file of its first ``n``
+    consecutive pairs."""
     import shutil
 
     root, mv = rendered_db
@@ -563,7 +563,14 @@ def test_cli_geometry_colmap_runs_colmaps_verification(rendered_db, tmp_path):
     shutil.copy(root / "fresh.db", a)
     shutil.copy(root / "fresh.db", b)
     pairs = tmp_path / "pairs.txt"
-    pairs.write_text("".join(f"{mv.names[i]} {mv.names[i + 1]}\n" for i in range(3)))
+    pairs.write_text("".join(f"{mv.names[i]} {mv.names[i + 1]}\n" for i in range(n)))
+    return a, b, pairs
+
+
+def test_cli_geometry_colmap_runs_colmaps_verification(rendered_db, tmp_path):
+    """--geometry colmap: raw matches from the engine, then pycolmap's verification writes the two-view geometries;
+    the matches are the same as with our geometry."""
+    a, b, pairs = _two_copies_and_pairs(rendered_db, tmp_path, 3)
     r = run_cli("colmap", a, "--pairs", pairs, "--geometry", "colmap", "--workers", "0", "--log", "none")
     assert r.returncode == 0, r.stderr
     assert "verified   : 3 pairs" in r.stdout
@@ -579,14 +586,7 @@ def test_cli_geometry_colmap_runs_colmaps_verification(rendered_db, tmp_path):
 def test_cli_scheduler_address_attaches_to_a_running_cluster(rendered_db, cluster_client, tmp_path):
     """`--scheduler ADDRESS`: the pairs run on the running cluster's workers (shared storage: same machine), the
     command does not stop the cluster, and the result equals the in-process one."""
-    import shutil
-
-    root, mv = rendered_db
-    a, b = tmp_path / "a.db", tmp_path / "b.db"
-    shutil.copy(root / "fresh.db", a)
-    shutil.copy(root / "fresh.db", b)
-    pairs = tmp_path / "pairs.txt"
-    pairs.write_text("".join(f"{mv.names[i]} {mv.names[i + 1]}\n" for i in range(4)))
+    a, b, pairs = _two_copies_and_pairs(rendered_db, tmp_path, 4)
     address = cluster_client.scheduler.address
     r = run_cli("colmap", a, "--pairs", pairs, "--scheduler", address, "--log", tmp_path / "a.jsonl")
     assert r.returncode == 0, r.stderr
