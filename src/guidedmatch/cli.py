@@ -134,23 +134,6 @@ def fallback_lines(fallbacks) -> list[str]:
     return [f"{w}: {r}" + (f" (x{n})" if n > 1 else "") for (w, r), n in counts.items()]
 
 
-def pair_geometry(result, f1, f2):
-    """The two-view verdict of a match result: ``result.geometry`` when the matcher provides it, else
-    :func:`~guidedmatch.geometry.two_view_geometry` decided on the matches made before any model was fitted
-    (``flags["phase"] == 0``: unguided nearest neighbours, so the test is not biased by the guidance) and reported
-    over all matches."""
-    geo = getattr(result, "geometry", None)
-    if geo is not None:
-        return geo
-    from .geometry import two_view_geometry
-
-    p = result.pairs
-    x1, x2 = f1.keypoints[p[:, 0]], f2.keypoints[p[:, 1]]
-    phase = result.flags.get("phase")
-    ev = np.ones(len(p), bool) if phase is None else np.asarray(phase) == 0
-    return two_view_geometry(x1[ev], x2[ev], f1.image_size, f2.image_size, report_on=(x1, x2))
-
-
 def _subset_result(result, keep: np.ndarray):
     import dataclasses
 
@@ -210,7 +193,7 @@ def cmd_match(args) -> int:
     (result, models), time_s, compile_s = timed_match(f1, f2, args.mode, config, return_models=True)
     compile_s += waited
     st = result.stats
-    geo = pair_geometry(result, f1, f2)
+    geo = result.geometry  # every matcher result carries its two-view verdict (issue 11)
     scaled = ""
     if args.max_image_size and max(max(f.image_size) for f in (f1, f2)) > args.max_image_size:
         scaled = f", detected at long side <= {args.max_image_size} px, coordinates in original pixels"
