@@ -19,7 +19,7 @@ from guidedmatch.collection.engine import (CollectionConfig, _ImageCache, _TaskS
                                            plan_tasks)
 from guidedmatch.errors import ConfigError, InputError
 from guidedmatch.features import Features
-from guidedmatch.geometry import VerdictConfig, two_view_geometry
+from guidedmatch.geometry import VERDICTS
 from guidedmatch.matcher import MatcherConfig, match
 from guidedmatch.testing.twoview import intrinsics_matrix, look_at_rotation, project
 
@@ -114,14 +114,9 @@ def all_pairs(names):
 
 
 def reference(feats, a, b, mode="so+epi+ia"):
-    """The slow, obviously-correct path: one direct matcher call and one verdict call per pair."""
-    f1, f2 = feats[a], feats[b]
-    res = match(f1, f2, mode, MatcherConfig())
-    g = getattr(res, "geometry", None)
-    if g is None:
-        g = two_view_geometry(f1.keypoints[res.pairs[:, 0]], f2.keypoints[res.pairs[:, 1]], f1.image_size,
-                              f2.image_size, VerdictConfig())
-    return res, g
+    """The slow, obviously-correct path: one direct matcher call per pair (its result carries the verdict)."""
+    res = match(feats[a], feats[b], mode, MatcherConfig())
+    return res, res.geometry
 
 
 def assert_same_as_reference(sink, feats, pairs):
@@ -156,7 +151,7 @@ def test_in_process_matches_every_pair_like_the_direct_calls(views, tmp_path):
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     assert [ln["event"] for ln in lines] == ["pair"] * 10 + ["summary"]
     assert {frozenset(ln["pair"]) for ln in lines[:-1]} == {frozenset(p) for p in pairs}
-    assert all(ln["status"] == "done" and ln["geometry_source"] in ("matcher", "engine") for ln in lines[:-1])
+    assert all(ln["status"] == "done" and ln["verdict"] in VERDICTS for ln in lines[:-1])
     assert lines[-1]["done"] == 10 and lines[-1]["failed"] == []
     assert "10 matched" in rep.summary()
 
@@ -164,7 +159,7 @@ def test_in_process_matches_every_pair_like_the_direct_calls(views, tmp_path):
 def test_cache_bound_evicts_and_keeps_the_pair_being_matched(views):
     names = list(views)
     one = views[names[0]].keypoints.nbytes + views[names[0]].descriptors.nbytes
-    spec = _TaskSpec("t", "so+epi+ia", MatcherConfig(), VerdictConfig(), cache_bytes=int(2.5 * one),
+    spec = _TaskSpec("t", "so+epi+ia", MatcherConfig(), cache_bytes=int(2.5 * one),
                      single_thread=False)
     cache = _ImageCache(DictSource(views), spec)
     for a, b in all_pairs(names):

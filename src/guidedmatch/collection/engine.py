@@ -59,8 +59,7 @@ not written, so a rerun tries it again. Matching is deterministic (seeded), so a
 rerun gives the same matches as an uninterrupted run.
 
 Each pair: :func:`guidedmatch.matcher.match` (``mode``, ``matcher`` config), then the two-view verdict: the
-matcher's own ``result.geometry`` when it provides one, else :func:`guidedmatch.geometry.two_view_geometry` on
-the matches (``verdict`` config); the per-pair stats say which (``geometry_source``: ``"matcher"`` / ``"engine"``).
+matcher's own ``result.geometry`` (every matcher result carries one; its time is part of ``match_s``).
 """
 from __future__ import annotations
 
@@ -80,7 +79,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, GuidedMatchError, InputError
-from ..geometry import TwoViewGeometry, VerdictConfig, two_view_geometry
+from ..geometry import TwoViewGeometry
 from ..config import MODES, MatcherConfig
 from ..validation import check_bool, check_choice, check_number, config_from
 
@@ -100,12 +99,11 @@ _SINGLE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLA
 class CollectionConfig:
     """Settings of :func:`match_collection` (see the module doc for the scheduling and the memory bound).
 
-    ``matcher`` and ``verdict`` accept a dict of their fields.
+    ``matcher`` accepts a dict of its fields.
     """
 
     mode: str = "so+epi+ia"                    # matcher mode for every pair (guidedmatch.matcher.MODES)
     matcher: MatcherConfig = field(default_factory=MatcherConfig)   # matcher settings (a dict of fields works too)
-    verdict: VerdictConfig = field(default_factory=VerdictConfig)   # two-view verdict when the matcher gives none
     workers: int | None = None                 # None: auto (module doc); 0: in-process; N: local cluster of N processes
     scheduler: str | None = None               # address of a running Dask scheduler, e.g. "tcp://10.0.0.1:8786"
     retries: int = 1                           # extra attempts of a failed pair before it is reported failed
@@ -121,7 +119,6 @@ class CollectionConfig:
         own = "CollectionConfig"
         check_choice(own, "mode", self.mode, MODES)
         object.__setattr__(self, "matcher", config_from(MatcherConfig, self.matcher))
-        object.__setattr__(self, "verdict", config_from(VerdictConfig, self.verdict))
         check_number(own, "workers", self.workers, lo=0, integer=True, allow_none=True)
         if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
             raise ConfigError(f"{own}.scheduler must be an address like 'tcp://host:8786' or None; "
@@ -179,9 +176,9 @@ class CollectionReport:
                  f"{len(self.failed)} failed)",
                  f"backend    : {t.get('backend')} ({t.get('workers')} worker(s)); {t.get('backend_reason')}",
                  f"matches    : {t.get('matches', 0)}; verified pairs {t.get('verified_pairs', 0)} of {self.done}, "
-                 f"inlier matches {t.get('inliers', 0)} (geometry from {_fmt_counts(t.get('geometry_source', {}))})",
+                 f"inlier matches {t.get('inliers', 0)}",
                  f"time       : {self.wall_s:.2f} s wall ({t.get('pairs_per_s', 0.0):.2f} pairs/s matched), "
-                 f"matching {t.get('match_s', 0.0):.2f} s + verdict {t.get('verdict_s', 0.0):.2f} s summed over pairs"]
+                 f"matching (verdicts included) {t.get('match_s', 0.0):.2f} s summed over pairs"]
         if t.get("startup_s"):
             lines.append(f"cluster    : start {t['startup_s']:.2f} s, stop {t.get('shutdown_s', 0.0):.2f} s")
         for (a, b), reason in self.failed[:5]:
@@ -189,10 +186,6 @@ class CollectionReport:
         if len(self.failed) > 5:
             lines.append(f"failed     : ... and {len(self.failed) - 5} more (see the log)")
         return "\n".join(lines)
-
-
-def _fmt_counts(d: dict) -> str:
-    return ", ".join(f"{k}: {v}" for k, v in sorted(d.items())) or "-"
 
 
 # ============================================================================================ worker side
@@ -203,7 +196,6 @@ class _TaskSpec:
     run_id: str
     mode: str
     matcher: MatcherConfig
-    verdict: VerdictConfig
     cache_bytes: int
     single_thread: bool
 
@@ -365,22 +357,15 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
         t1 = time.perf_counter()
         res = match(A.prepared, B.prepared, spec.mode, spec.matcher)
         t2 = time.perf_counter()
-        geom = getattr(res, "geometry", None)
-        source = "matcher"
-        if geom is None:
-            source = "engine"
-            f1, f2 = A.features, B.features
-            geom = two_view_geometry(f1.keypoints[res.pairs[:, 0]], f2.keypoints[res.pairs[:, 1]],
-                                     f1.image_size, f2.image_size, spec.verdict)
-        t3 = time.perf_counter()
+        geom = res.geometry
     except Exception as exc:  # noqa: BLE001 - reported per pair, retried by the client, never silently lost
         return PairOutcome(a, b, False, f"{type(exc).__name__}: {exc}",
                            stats=dict(worker=worker, time_s=time.perf_counter() - t0))
     st = res.stats
     stats = dict(n1=len(A.features), n2=len(B.features), matches=len(res), verdict=geom.verdict, model=geom.model,
-                 inliers=int(geom.num_inliers), geometry_source=source, comparisons=getattr(st, "comparisons", None),
+                 inliers=int(geom.num_inliers), comparisons=getattr(st, "comparisons", None),
                  fallbacks=[f"{f.what}: {f.reason}" for f in getattr(st, "fallbacks", ())],
-                 load_s=t1 - t0, match_s=t2 - t1, verdict_s=t3 - t2, worker=worker)
+                 load_s=t1 - t0, match_s=t2 - t1, worker=worker)
     return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats)
 
 
@@ -474,7 +459,6 @@ class _Writer:
         self.failed: list = []
         self.per_pair: list = []
         self.sums = collections.Counter()
-        self.geometry_source = collections.Counter()
         self.verdicts = collections.Counter()
         self.quarantined: set = set()
 
@@ -505,9 +489,8 @@ class _Writer:
         st = out.stats
         self.sums.update(matches=st["matches"], inliers=st["inliers"] if out.geometry else 0,
                          verified_pairs=int(bool(out.geometry)))
-        for k in ("load_s", "match_s", "verdict_s"):
+        for k in ("load_s", "match_s"):
             self.sums[k] += st[k]
-        self.geometry_source[st["geometry_source"]] += 1
         self.verdicts[st["verdict"]] += 1
         self._record(out, dict(status="done"))
 
@@ -759,7 +742,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                 nfeat[n] = int(source.num_features(n))
     work = sum(nfeat[a] + nfeat[b] for a, b in todo)
     backend, n_workers, reason = _choose_backend(cfg, client, work) if todo else ("none", 0, "nothing to do")
-    spec = _TaskSpec(uuid.uuid4().hex[:12], cfg.mode, cfg.matcher, cfg.verdict, int(cfg.cache_mb * 2**20),
+    spec = _TaskSpec(uuid.uuid4().hex[:12], cfg.mode, cfg.matcher, int(cfg.cache_mb * 2**20),
                      single_thread=backend == "local-cluster")
     if backend in ("local-cluster", "scheduler", "client"):
         try:
@@ -822,8 +805,8 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                   backend_reason=reason, backend_rule=INPROCESS_RULE, inprocess_max_work=cfg.inprocess_max_work,
                   workers=facts["workers"], mode=cfg.mode, matches=int(s["matches"]), inliers=int(s["inliers"]),
                   verified_pairs=int(s["verified_pairs"]), verdicts=dict(writer.verdicts),
-                  geometry_source=dict(writer.geometry_source), load_s=float(s["load_s"]),
-                  match_s=float(s["match_s"]), verdict_s=float(s["verdict_s"]), cache_hits=facts["cache_hits"],
+                  load_s=float(s["load_s"]),
+                  match_s=float(s["match_s"]), cache_hits=facts["cache_hits"],
                   image_loads=facts["image_loads"], images=len(nfeat), startup_s=startup_s, shutdown_s=shutdown_s,
                   pairs_per_s=writer.done / wall if wall > 0 else 0.0, chunk_pairs=cfg.chunk_pairs,
                   max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process" else 1,

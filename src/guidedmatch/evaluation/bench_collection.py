@@ -56,8 +56,8 @@ def _timed(cmd: list[str], log: Path | None = None) -> dict:
         summary = json.loads(lines[-1]) if lines else {}
         out["summary"] = {k: summary.get(k) for k in ("done", "skipped", "failed", "wall_s", "backend", "workers",
                                                       "backend_reason", "matches", "inliers", "verified_pairs",
-                                                      "match_s", "verdict_s", "load_s", "startup_s", "shutdown_s",
-                                                      "image_loads", "cache_hits", "geometry_source", "work")}
+                                                      "match_s", "load_s", "startup_s", "shutdown_s",
+                                                      "image_loads", "cache_hits", "work")}
     if r.returncode != 0:
         raise RuntimeError(f"{out['cmd']} failed ({r.returncode}): {r.stderr.strip()[-2000:]}")
     return out
