@@ -337,4 +337,4 @@ def test_cache_is_cold_reads_the_numba_index():
 
     assert isinstance(jit.cache_is_cold("sift"), bool)
     assert jit._kernel_dtype("sift") == "uint8" and jit._kernel_dtype("orb") == "uint64"
-    assert kernels._guided_par._cache is not None  # the internals cache_is_cold reads exist in this Numba
+    assert kernels._guided_ser._cache is not None  # the internals cache_is_cold reads exist in this Numba

@@ -135,13 +135,13 @@ def _kernel_dtype(detector: str) -> str:
 def cache_is_cold(detector: str) -> bool:
     """True when Numba's on-disk cache holds no guided kernel for ``detector``'s descriptor type (a first run).
 
-    Reads the cache index of :data:`guidedmatch.kernels._guided_par` (Numba internals, so any failure -- caching
+    Reads the cache index of :data:`guidedmatch.kernels._guided_ser` (Numba internals, so any failure -- caching
     disabled, another Numba version -- answers False: no background work, the foreground compiles as usual).
     """
     try:
         from . import kernels
 
-        index = kernels._guided_par._cache._cache_file._load_index()
+        index = kernels._guided_ser._cache._cache_file._load_index()
         tag = f"Array({_kernel_dtype(detector)}, 2"
         return not any(tag in str(key) for key in index)
     except Exception:
