@@ -6,6 +6,7 @@ float64 arithmetic), never with recorded outputs of the code under test.
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
+from hypothesis.extra.numpy import arrays
 from threadpoolctl import threadpool_info
 
 from guidedmatch import kernels
@@ -622,3 +623,19 @@ def test_first_nonempty():
     for s in range(S.nstrips + 1):
         want = min([o for o in occupied if o >= s], default=S.nstrips)
         assert first[s] == want
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float64, st.tuples(st.integers(0, 40), st.just(2)),
+              elements=st.floats(-200, 200, allow_nan=False, allow_infinity=False)),
+       st.floats(0.5, 30.0), st.integers(0, 1))
+def test_first_nonempty_equals_a_loop(pts, width, axis):
+    S = kernels.build_strips(pts, width, axis=axis)
+    ns, nk, off = S.nstrips, S.ncells, S.offsets
+    want = np.empty(ns + 1, np.int64)
+    want[ns] = ns
+    for s in range(ns - 1, -1, -1):  # the loop the Numba kernel ran before
+        want[s] = s if off[(s + 1) * nk] > off[s * nk] else want[s + 1]
+    got = kernels.first_nonempty(S)
+    assert got.dtype == np.int64 and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, want)

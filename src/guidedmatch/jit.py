@@ -30,8 +30,9 @@ __all__ = ["CompileMonitor", "compile_monitor", "warm_up", "exclude_compile_time
 
 NOTE = ("guidedmatch: compiling Numba kernels for this descriptor type (first run only; cached for later runs, "
         "and not counted in the reported times) ...")
-#: features per image used to warm up (enough for the progressive phase and a parallel final pass)
-WARM_UP_FEATURES = 4096
+#: features per image used to warm up: enough for the progressive phase, the model fits and the final pass to run
+#: (a guided run's warm-up is guided too, see :func:`warm_up`); the SIFT demo's warm-ups load all 9 kernels at 2048
+WARM_UP_FEATURES = 2048
 
 _note_lock = threading.Lock()
 _note_printed = False
@@ -103,26 +104,34 @@ def warm_up(f1, f2, mode: str, config=None, *, note: bool = True, max_features: 
     """Compile (or load from the cache) every kernel ``match(f1, f2, mode, config)`` needs, untimed.
 
     Runs the same mode and config on the ``max_features`` strongest features of each image (same descriptor dtype
-    and length, hence the same kernel specializations; enough queries for the parallel final pass). Prints
+    and length, hence the same kernel specializations); when the full run is guided, so is the warm-up (its
+    ``auto_bf`` is turned off: the subset may be below the brute-force threshold). Prints
     :data:`NOTE` on stderr when something is actually compiled. Returns the seconds spent compiling (0.0 when
     everything was cached). Any kernel the warm-up run did not reach is still compiled by the timed run; callers
     measure that with :func:`compile_monitor` and report it separately.
     """
-    from .matcher import match
+    from .config import MatcherConfig, Mode
+    from .matcher import _bf_wins, match
+    from .validation import config_from
 
     a, b = _strongest(f1, max_features), _strongest(f2, max_features)
     if len(a) == 0 or len(b) == 0:
         return 0.0
     with compile_monitor(note=note) as cm:
         try:
-            match(a, b, mode=mode, config=config)
+            cfg = config_from(MatcherConfig, config)
+            binary = np.asarray(f1.descriptors).dtype == np.uint8
+            if Mode.parse(mode).guided and (len(a), len(b)) != (len(f1), len(f2)) and \
+                    _bf_wins(cfg, len(f1), len(f2), binary) is None:
+                cfg = cfg.replace(auto_bf=False)  # the full run is guided (not auto-bf): its smaller warm-up too
+            match(a, b, mode=mode, config=cfg)
         except Exception:  # the real run reports errors; a warm-up never hides or raises them
             pass
     return cm.seconds
 
 
 # --------------------------------------------------------------------------- first run: compile on both cores
-#: set to "0" to compile in the foreground only (the CLI otherwise uses two helper processes on a cold cache)
+#: "0": compile in the foreground only; "1": always use the helper processes on a cold cache; unset: when a core is idle
 BACKGROUND_ENV = "GUIDEDMATCH_BACKGROUND_COMPILE"
 
 
@@ -148,39 +157,129 @@ def cache_is_cold(detector: str) -> bool:
         return False
 
 
-def _precompile(detector: str, part: str, with_bf: bool = False) -> None:
-    """Compile one half of the kernels a run of ``detector`` features needs (in a helper process; they land in the
-    on-disk cache). ``part="parallel"``: the multi-threaded guided kernel, and with ``with_bf`` the brute-force
-    top-2 of mode ``bf`` (direct calls on small arrays of the exact argument types); ``"serial"``: everything a
-    ``so+epi+ia`` run of <= 1500 features reaches (single-threaded guided kernel, spatial-order and alignment
-    kernels) on a small rendered scene."""
-    rng = np.random.default_rng(0)
-    if part == "parallel":
-        from . import kernels
+#: kernel groups of a first run compiled by helper processes (one per core), each ~3 CPU-seconds for SIFT; the small
+#: ``"bf"`` group (brute-force top-2, descriptor conversion) is compiled by the caller while it waits
+HELPER_GROUPS = ("guided", "order")
 
-        n = kernels.PARALLEL_MIN_QUERIES
+
+def _precompile(detector: str, group: str) -> None:
+    """Compile (into the on-disk cache) one group of the kernels a run of ``detector`` features needs, by direct
+    calls on small arrays of the exact argument types the matcher passes:
+
+    * ``"guided"``: the guided candidate kernel of ``detector``'s descriptor kind and the strip index's counting
+      sort (every guided mode);
+    * ``"order"``: the spatial-order kernels (modes with ``so``), through :func:`~guidedmatch.spatial_order.
+      fit_spatial_order` and a lookup on a synthetic monotone match set with outliers;
+    * ``"bf"``: the brute-force top-2 (every mode: ``bf`` and the guided modes' unguided phase) and, for SIFT, the
+      exact-uint8 descriptor check.
+
+    A group that misses a specialization costs nothing but time: the caller's warm-up compiles whatever is not in
+    the cache (and reports it).
+    """
+    from . import kernels
+
+    rng = np.random.default_rng(0)
+    n = 64
+    sift = detector == "sift"
+    desc = rng.integers(0, 256, (n, 128)).astype(np.float32)
+    if group == "guided":
         pts = rng.uniform(0, 100, (n, 2))
-        if detector == "sift":
-            d = rng.integers(0, 256, (n, 128)).astype(np.uint8)
-        else:
-            d = kernels.pack_bits_u64(rng.integers(0, 256, (n, 32), dtype=np.uint8))
+        d = kernels.as_exact_uint8(desc) if sift else kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
         cols, rows = kernels.build_strips(pts, 16.0, 0), kernels.build_strips(pts, 16.0, 1)
         lines = np.tile([0.0, 1.0, -50.0], (n, 1))
         kernels.guided_top2(np.arange(n), d, d, lines, True, 5.0, np.full(n, -np.inf), np.full(n, np.inf), cols, rows)
-        if not with_bf:
-            return
-        if detector == "sift":
-            kernels.top2_gemm(np.zeros((256, 64), np.float32), np.zeros(64, np.float32), np.zeros(256, np.float32),
-                              False)
-        else:
-            kernels.hamming_top2(d[:8], d[:8])
-    else:
-        from .features import detect
-        from .matcher import match
-        from .testing.scenes import make_scene
+    elif group == "order":
+        from .spatial_order import admissible_x_ranges, fit_spatial_order
 
-        scene = make_scene((640, 480), roll_deg=20.0, seed=1)
-        match(detect(scene.image1, detector, 1500), detect(scene.image2, detector, 1500), "so+epi+ia")
+        m = 300
+        x1 = rng.uniform(0, 1000, m)
+        x2 = 0.9 * x1 + 40 + rng.normal(0, 2, m)
+        x2[:30] = rng.uniform(0, 1000, 30)  # wrong matches
+        y = rng.uniform(0, 800, m)
+        model = fit_spatial_order(x1, x2, y1=y, y2=y, likely_correct=np.arange(m) >= 30)
+        admissible_x_ranges(model, x1[:8] + 0.5)
+    elif group == "bf":
+        if sift:
+            kernels.as_exact_uint8(desc)
+            kernels.top2_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), False)
+        else:
+            w = kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
+            kernels.hamming_top2(w, w)
+            kernels.hamming_col_best(w, w)
+    else:
+        raise ValueError(f"unknown kernel group {group!r}")
+
+
+def _helper_main(detector: str, group: str) -> None:  # pragma: no cover - runs in a forked helper process
+    import os
+    import warnings
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
+    warnings.simplefilter("ignore")
+    try:
+        _precompile(detector, group)
+    except BaseException:  # the caller's warm-up compiles (and reports) whatever a helper did not
+        os._exit(1)
+
+
+class _Forked:
+    """A forked helper (:mod:`multiprocessing` "fork" context) with the ``subprocess.Popen`` methods used here."""
+
+    def __init__(self, proc):
+        self.proc = proc
+
+    def wait(self, timeout=None):
+        import subprocess
+
+        self.proc.join(timeout)
+        if self.proc.exitcode is None:
+            raise subprocess.TimeoutExpired("guidedmatch.jit helper", timeout)
+        return self.proc.exitcode
+
+    def poll(self):
+        return self.proc.exitcode
+
+    @property
+    def returncode(self):
+        return self.proc.exitcode
+
+    def kill(self):
+        self.proc.kill()
+
+
+def _start_helper(detector: str, group: str):
+    """Start the helper process compiling kernel ``group``: forked on Linux, once this process has imported the
+    matcher and initialised Numba's compiler (both ~0.7 CPU-seconds that every fresh interpreter pays again, and
+    that this process needs anyway), else ``python -m guidedmatch.jit DETECTOR GROUP``."""
+    import multiprocessing
+    import subprocess
+
+    if sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods():
+        _init_compiler()
+        proc = multiprocessing.get_context("fork").Process(target=_helper_main, args=(detector, group),
+                                                             name=f"guidedmatch-jit-{group}", daemon=True)
+        proc.start()
+        return _Forked(proc)
+    return subprocess.Popen([sys.executable, "-m", "guidedmatch.jit", detector, group],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+_compiler_ready = False
+
+
+def _init_compiler() -> None:
+    """Import what the helpers compile and compile one trivial function (Numba's one-off compiler set-up)."""
+    global _compiler_ready
+    if _compiler_ready:
+        return
+    from numba import njit
+
+    from . import kernels, matcher, spatial_order  # noqa: F401 - imported for the forked helpers
+
+    njit(cache=False)(lambda x: x + 1)(1)
+    _compiler_ready = True
 
 
 def _idle_cores() -> float:
@@ -199,11 +298,14 @@ def _idle_cores() -> float:
 
 
 class BackgroundCompile:
-    """Two helper processes compiling the kernels of a first run while the caller reads and detects
-    (:func:`background_compile`). ``wait()`` returns the seconds spent waiting for them."""
+    """Helper processes compiling the kernels of a first run while the caller reads and detects
+    (:func:`background_compile`). ``wait()`` compiles the small ``"bf"`` group in the caller meanwhile, then waits
+    for the helpers, and returns the seconds this took (all of it first-run compilation)."""
 
-    def __init__(self, procs):
+    def __init__(self, procs, detector: str = "sift", stream=None):
         self.procs = procs
+        self.detector = detector
+        self.stream = stream
 
     def __bool__(self) -> bool:
         return bool(self.procs)
@@ -214,6 +316,11 @@ class BackgroundCompile:
         if not self.procs:
             return 0.0
         t0 = time.perf_counter()
+        with compile_monitor(note=False):
+            try:
+                _precompile(self.detector, "bf")
+            except Exception:  # the foreground warm-up compiles (and reports) whatever this did not
+                pass
         for p in self.procs:
             try:
                 p.wait(timeout=max(1.0, timeout - (time.perf_counter() - t0)))
@@ -231,35 +338,46 @@ class BackgroundCompile:
         self.procs = []
 
 
+def _background_wanted() -> bool:
+    """``GUIDEDMATCH_BACKGROUND_COMPILE``: ``0`` never, ``1`` always, unset (or ``auto``) when a core is idle by the
+    1-minute load average."""
+    import os
+
+    value = os.environ.get(BACKGROUND_ENV, "auto").strip().lower()
+    if value == "0":
+        return False
+    if value == "1":
+        return True
+    return _idle_cores() >= 1
+
+
 @contextmanager
 def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
     """On a first run (:func:`cache_is_cold`) of guided ``modes``, compile the kernels they need for ``detector``
-    features in two helper processes -- one per core -- while the block runs (image reading, detection); yields a
-    :class:`BackgroundCompile` (falsy when nothing was started: warm cache, no idle core (load average), or
-    ``GUIDEDMATCH_BACKGROUND_COMPILE=0``).
-    Call ``wait()`` before matching; on leaving the block the helpers are waited for (or killed on an error), never
-    left running. The caller's warm-up then loads the kernels from the cache, and compiles whatever is missing.
+    features in helper processes -- one per group of :data:`HELPER_GROUPS` the modes use (``"order"`` only for
+    ``so`` modes) -- while the block runs (image reading, detection); yields a :class:`BackgroundCompile` (falsy
+    when nothing was started: warm cache, ``bf`` alone, no idle core by the load average, or
+    ``GUIDEDMATCH_BACKGROUND_COMPILE=0``; ``=1`` starts them whatever the load).
+    Call ``wait()`` before matching (it compiles the brute-force group in this process meanwhile); on leaving the
+    block the helpers are waited for (or killed on an error), never left running. The caller's warm-up then loads
+    the kernels from the cache, and compiles whatever is missing.
     """
-    import os
-    import subprocess
-
     global _note_printed
     procs = []
     modes = [str(m) for m in modes]
     guided = any(m != "bf" for m in modes)  # bf alone needs one small kernel: compiled in the foreground
-    if guided and os.environ.get(BACKGROUND_ENV, "1") != "0" and _idle_cores() >= 1 and cache_is_cold(detector):
+    if guided and _background_wanted() and cache_is_cold(detector):
         with _note_lock:
             if not _note_printed:
                 _note_printed = True
                 print(NOTE, file=stream or sys.stderr, flush=True)
-        for part in ("parallel", "serial"):
+        groups = [g for g in HELPER_GROUPS if g != "order" or any("so" in m for m in modes)]
+        for group in groups:
             try:
-                procs.append(subprocess.Popen([sys.executable, "-m", "guidedmatch.jit", detector, part,
-                                               "bf" if "bf" in modes else "-"],
-                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+                procs.append(_start_helper(detector, group))
             except OSError:
                 break
-    bg = BackgroundCompile(procs)
+    bg = BackgroundCompile(procs, detector, stream)
     try:
         yield bg
     except BaseException:
@@ -268,5 +386,5 @@ def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
     bg.wait()
 
 
-if __name__ == "__main__":  # helper process of background_compile: python -m guidedmatch.jit DETECTOR PART
-    _precompile(sys.argv[1], sys.argv[2], sys.argv[3] == "bf")
+if __name__ == "__main__":  # helper process of background_compile: python -m guidedmatch.jit DETECTOR GROUP
+    _precompile(sys.argv[1], sys.argv[2])
