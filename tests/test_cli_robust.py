@@ -327,7 +327,11 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
         assert len(bg.procs) == 1  # no spatial-order mode: the "order" group is not compiled
     with jit.background_compile("sift", ("bf",)) as bg:
         assert not bg  # brute force alone: its one small kernel compiles in the foreground
-    monkeypatch.setattr(jit, "_idle_cores", lambda: 0.3)  # saturated machine: compile in the foreground
+    monkeypatch.setattr(jit, "_idle_cores", lambda: 0.3)  # saturated machine: forked helpers all the same ...
+    monkeypatch.setattr(jit, "_can_fork", lambda: True)
+    with jit.background_compile("sift") as bg:
+        assert len(bg.procs) == 2
+    monkeypatch.setattr(jit, "_can_fork", lambda: False)  # ... but no fresh interpreters: the foreground compiles
     with jit.background_compile("sift") as bg:
         assert not bg
     monkeypatch.setenv(jit.BACKGROUND_ENV, "1")  # ... unless asked for
@@ -356,8 +360,10 @@ from guidedmatch.features import Features
 f1, f2 = Features.load({str(tmp_path / 'f1.npz')!r}), Features.load({str(tmp_path / 'f2.npz')!r})
 assert jit.cache_is_cold("sift")
 with jit.background_compile("sift", ("bf", "epi", "so", "so+epi", "so+epi+ia"), stream=sys.stdout) as bg:
-    assert len(bg.procs) == 2 and all(type(p).__name__ == "_Forked" for p in bg.procs)
+    assert len(bg.procs) == 2 and all(type(p).__name__ == "_Forked" for p in bg.procs.values())
+    bg.wait("guided")
     bg.wait()
+    assert bg.helper_seconds > 0.5, bg.helper_seconds
 assert not jit.cache_is_cold("sift")
 total = 0.0
 for mode in ("bf", "epi", "so", "so+epi", "so+epi+ia"):

@@ -157,8 +157,8 @@ def cache_is_cold(detector: str) -> bool:
         return False
 
 
-#: kernel groups of a first run compiled by helper processes (one per core), each ~3 CPU-seconds for SIFT; the small
-#: ``"bf"`` group (brute-force top-2, descriptor conversion) is compiled by the caller while it waits
+#: kernel groups of a first run, each compiled by a helper process (one per core): ``"guided"`` (~2.8 CPU-seconds
+#: for SIFT) and ``"order"`` (~3.2 s)
 HELPER_GROUPS = ("guided", "order")
 
 
@@ -166,12 +166,11 @@ def _precompile(detector: str, group: str) -> None:
     """Compile (into the on-disk cache) one group of the kernels a run of ``detector`` features needs, by direct
     calls on small arrays of the exact argument types the matcher passes:
 
-    * ``"guided"``: the guided candidate kernel of ``detector``'s descriptor kind and the strip index's counting
-      sort (every guided mode);
+    * ``"guided"``: first the brute-force top-2 (mode ``bf`` and the guided modes' unguided phase) and, for SIFT,
+      the exact-uint8 descriptor check; then the guided candidate kernel of ``detector``'s descriptor kind and the
+      strip index's counting sort (every guided mode);
     * ``"order"``: the spatial-order kernels (modes with ``so``), through :func:`~guidedmatch.spatial_order.
-      fit_spatial_order` and a lookup on a synthetic monotone match set with outliers;
-    * ``"bf"``: the brute-force top-2 (every mode: ``bf`` and the guided modes' unguided phase) and, for SIFT, the
-      exact-uint8 descriptor check.
+      fit_spatial_order` and a lookup on a synthetic monotone match set with outliers.
 
     A group that misses a specialization costs nothing but time: the caller's warm-up compiles whatever is not in
     the cache (and reports it).
@@ -183,8 +182,14 @@ def _precompile(detector: str, group: str) -> None:
     sift = detector == "sift"
     desc = rng.integers(0, 256, (n, 128)).astype(np.float32)
     if group == "guided":
+        if sift:
+            d = kernels.as_exact_uint8(desc)
+            kernels.top2_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), False)
+        else:
+            d = kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
+            kernels.hamming_top2(d, d)
+            kernels.hamming_col_best(d, d)
         pts = rng.uniform(0, 100, (n, 2))
-        d = kernels.as_exact_uint8(desc) if sift else kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
         cols, rows = kernels.build_strips(pts, 16.0, 0), kernels.build_strips(pts, 16.0, 1)
         lines = np.tile([0.0, 1.0, -50.0], (n, 1))
         kernels.guided_top2(np.arange(n), d, d, lines, True, 5.0, np.full(n, -np.inf), np.full(n, np.inf), cols, rows)
@@ -198,19 +203,11 @@ def _precompile(detector: str, group: str) -> None:
         y = rng.uniform(0, 800, m)
         model = fit_spatial_order(x1, x2, y1=y, y2=y, likely_correct=np.arange(m) >= 30)
         admissible_x_ranges(model, x1[:8] + 0.5)
-    elif group == "bf":
-        if sift:
-            kernels.as_exact_uint8(desc)
-            kernels.top2_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), False)
-        else:
-            w = kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
-            kernels.hamming_top2(w, w)
-            kernels.hamming_col_best(w, w)
     else:
         raise ValueError(f"unknown kernel group {group!r}")
 
 
-def _helper_main(detector: str, group: str) -> None:  # pragma: no cover - runs in a forked helper process
+def _helper_main(detector: str, group: str, seconds=None) -> None:  # pragma: no cover - a forked helper
     import os
     import warnings
 
@@ -218,17 +215,27 @@ def _helper_main(detector: str, group: str) -> None:  # pragma: no cover - runs 
     os.dup2(devnull, 1)
     os.dup2(devnull, 2)
     warnings.simplefilter("ignore")
+    t0 = time.process_time()
     try:
         _precompile(detector, group)
     except BaseException:  # the caller's warm-up compiles (and reports) whatever a helper did not
         os._exit(1)
+    if seconds is not None:
+        seconds.value = time.process_time() - t0
 
 
 class _Forked:
-    """A forked helper (:mod:`multiprocessing` "fork" context) with the ``subprocess.Popen`` methods used here."""
+    """A forked helper (:mod:`multiprocessing` "fork" context) with the ``subprocess.Popen`` methods used here;
+    ``seconds``: its compilation time (CPU seconds) once it has finished (None before, or when it failed)."""
 
-    def __init__(self, proc):
+    def __init__(self, proc, seconds):
         self.proc = proc
+        self._seconds = seconds
+
+    @property
+    def seconds(self) -> float | None:
+        v = self._seconds.value
+        return v if self.proc.exitcode == 0 and v >= 0 else None
 
     def wait(self, timeout=None):
         import subprocess
@@ -249,6 +256,13 @@ class _Forked:
         self.proc.kill()
 
 
+def _can_fork() -> bool:
+    """Helpers are forked (Linux): they then cost only their compilation, nothing the caller would not do itself."""
+    import multiprocessing
+
+    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+
+
 def _start_helper(detector: str, group: str):
     """Start the helper process compiling kernel ``group``: forked on Linux, once this process has imported the
     matcher and initialised Numba's compiler (both ~0.7 CPU-seconds that every fresh interpreter pays again, and
@@ -256,12 +270,14 @@ def _start_helper(detector: str, group: str):
     import multiprocessing
     import subprocess
 
-    if sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods():
+    if _can_fork():
         _init_compiler()
-        proc = multiprocessing.get_context("fork").Process(target=_helper_main, args=(detector, group),
-                                                             name=f"guidedmatch-jit-{group}", daemon=True)
+        ctx = multiprocessing.get_context("fork")
+        seconds = ctx.Value("d", -1.0, lock=False)
+        proc = ctx.Process(target=_helper_main, args=(detector, group, seconds), name=f"guidedmatch-jit-{group}",
+                           daemon=True)
         proc.start()
-        return _Forked(proc)
+        return _Forked(proc, seconds)
     return subprocess.Popen([sys.executable, "-m", "guidedmatch.jit", detector, group],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
@@ -299,48 +315,50 @@ def _idle_cores() -> float:
 
 class BackgroundCompile:
     """Helper processes compiling the kernels of a first run while the caller reads and detects
-    (:func:`background_compile`). ``wait()`` compiles the small ``"bf"`` group in the caller meanwhile, then waits
-    for the helpers, and returns the seconds this took (all of it first-run compilation)."""
+    (:func:`background_compile`): ``procs`` maps a group of :data:`HELPER_GROUPS` to its process. ``wait(group)``
+    waits for one group's helper (all by default) and returns the seconds waited (first-run compilation)."""
 
-    def __init__(self, procs, detector: str = "sift", stream=None):
-        self.procs = procs
-        self.detector = detector
-        self.stream = stream
+    def __init__(self, procs: dict):
+        self.procs = dict(procs)
+        self.helpers = len(self.procs)
+        #: CPU seconds the finished helpers spent compiling (forked helpers report it; None when one did not)
+        self.helper_seconds: float | None = 0.0
 
     def __bool__(self) -> bool:
         return bool(self.procs)
 
-    def wait(self, timeout: float = 600.0) -> float:
+    def wait(self, group: str | None = None, timeout: float = 600.0) -> float:
         import subprocess
 
         if not self.procs:
             return 0.0
         t0 = time.perf_counter()
-        with compile_monitor(note=False):
-            try:
-                _precompile(self.detector, "bf")
-            except Exception:  # the foreground warm-up compiles (and reports) whatever this did not
-                pass
-        for p in self.procs:
+        for g in [group] if group is not None else list(self.procs):
+            p = self.procs.pop(g, None)
+            if p is None:
+                continue
             try:
                 p.wait(timeout=max(1.0, timeout - (time.perf_counter() - t0)))
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
-        self.procs = []
+            sec = getattr(p, "seconds", None)
+            self.helper_seconds = None if sec is None or self.helper_seconds is None else self.helper_seconds + sec
         return time.perf_counter() - t0
 
     def stop(self) -> None:
-        for p in self.procs:
+        for p in self.procs.values():
             if p.poll() is None:
                 p.kill()
                 p.wait()
-        self.procs = []
+        self.procs = {}
 
 
 def _background_wanted() -> bool:
-    """``GUIDEDMATCH_BACKGROUND_COMPILE``: ``0`` never, ``1`` always, unset (or ``auto``) when a core is idle by the
-    1-minute load average."""
+    """``GUIDEDMATCH_BACKGROUND_COMPILE``: ``0`` never, ``1`` always, unset (or ``auto``): always where helpers are
+    forked (:func:`_can_fork`: they duplicate no work, and the 1-minute load average right after a ``pip install``
+    would wrongly say "busy"), else when a core is idle by the load average (a fresh interpreter per helper costs
+    ~0.7 CPU-seconds of imports, wasted on a saturated machine)."""
     import os
 
     value = os.environ.get(BACKGROUND_ENV, "auto").strip().lower()
@@ -348,7 +366,7 @@ def _background_wanted() -> bool:
         return False
     if value == "1":
         return True
-    return _idle_cores() >= 1
+    return _can_fork() or _idle_cores() >= 1
 
 
 @contextmanager
@@ -358,12 +376,12 @@ def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
     ``so`` modes) -- while the block runs (image reading, detection); yields a :class:`BackgroundCompile` (falsy
     when nothing was started: warm cache, ``bf`` alone, no idle core by the load average, or
     ``GUIDEDMATCH_BACKGROUND_COMPILE=0``; ``=1`` starts them whatever the load).
-    Call ``wait()`` before matching (it compiles the brute-force group in this process meanwhile); on leaving the
-    block the helpers are waited for (or killed on an error), never left running. The caller's warm-up then loads
+    Call ``wait()`` before matching (or ``wait(group)`` before warming up the modes that group serves); on leaving
+    the block the helpers are waited for (or killed on an error), never left running. The caller's warm-up then loads
     the kernels from the cache, and compiles whatever is missing.
     """
     global _note_printed
-    procs = []
+    procs = {}
     modes = [str(m) for m in modes]
     guided = any(m != "bf" for m in modes)  # bf alone needs one small kernel: compiled in the foreground
     if guided and _background_wanted() and cache_is_cold(detector):
@@ -374,10 +392,10 @@ def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
         groups = [g for g in HELPER_GROUPS if g != "order" or any("so" in m for m in modes)]
         for group in groups:
             try:
-                procs.append(_start_helper(detector, group))
+                procs[group] = _start_helper(detector, group)
             except OSError:
                 break
-    bg = BackgroundCompile(procs, detector, stream)
+    bg = BackgroundCompile(procs)
     try:
         yield bg
     except BaseException:
