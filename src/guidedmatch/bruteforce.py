@@ -149,12 +149,10 @@ class DenseKnn2:
     """
 
     def __init__(self, d2: np.ndarray, d2_sqnorms: np.ndarray | None = None, threads: int | None = None):
-        from numba import get_num_threads
-
         self.d2 = np.ascontiguousarray(d2, np.float32)
         n2 = len(self.d2)
         nn2 = np.einsum("ij,ij->i", self.d2, self.d2) if d2_sqnorms is None else np.asarray(d2_sqnorms, np.float32)
-        k = max(1, min(int(threads or get_num_threads()), max(1, n2 // 1024)))
+        k = max(1, min(int(threads or kernels.num_threads()), max(1, n2 // 1024)))
         cuts = np.linspace(0, n2, k + 1).astype(np.int64)
         self.chunks = [(self.d2[a:b], nn2[a:b], int(a)) for a, b in zip(cuts[:-1], cuts[1:])]
         self._pool = None
