@@ -316,7 +316,8 @@ def _idle_cores() -> float:
 class BackgroundCompile:
     """Helper processes compiling the kernels of a first run while the caller reads and detects
     (:func:`background_compile`): ``procs`` maps a group of :data:`HELPER_GROUPS` to its process. ``wait(group)``
-    waits for one group's helper (all by default) and returns the seconds waited (first-run compilation)."""
+    waits for one group's helper (all by default) and returns the seconds waited (first-run compilation); a helper
+    still running after ``timeout`` seconds is killed (the caller's warm-up then compiles what it left out)."""
 
     def __init__(self, procs: dict):
         self.procs = dict(procs)
@@ -327,7 +328,7 @@ class BackgroundCompile:
     def __bool__(self) -> bool:
         return bool(self.procs)
 
-    def wait(self, group: str | None = None, timeout: float = 600.0) -> float:
+    def wait(self, group: str | None = None, timeout: float = 180.0) -> float:
         import subprocess
 
         if not self.procs:
