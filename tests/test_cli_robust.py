@@ -343,47 +343,6 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
         assert not bg
 
 
-def test_forked_helpers_fill_the_cache_the_foreground_then_only_loads(tmp_path, small_scene_features):
-    """A cold NUMBA_CACHE_DIR: the helper groups (forked, as on a first CLI run) plus the in-process "bf" group
-    compile every kernel a SIFT so+epi+ia / so / epi / bf run needs -- the foreground warm-up compiles nothing."""
-    import os
-    import subprocess
-    import sys
-
-    f1, f2 = small_scene_features
-    f1.save(tmp_path / "f1.npz")
-    f2.save(tmp_path / "f2.npz")
-    code = f"""
-import sys
-from guidedmatch import jit
-from guidedmatch.features import Features
-f1, f2 = Features.load({str(tmp_path / 'f1.npz')!r}), Features.load({str(tmp_path / 'f2.npz')!r})
-assert jit.cache_is_cold("sift")
-with jit.background_compile("sift", ("bf", "epi", "so", "so+epi", "so+epi+ia"), stream=sys.stdout) as bg:
-    assert len(bg.procs) == 2 and all(type(p).__name__ == "_Forked" for p in bg.procs.values())
-    bg.wait("guided")
-    bg.wait()
-    assert bg.helper_seconds > 0.5, bg.helper_seconds
-assert not jit.cache_is_cold("sift")
-total = 0.0
-for mode in ("bf", "epi", "so", "so+epi", "so+epi+ia"):
-    total += jit.warm_up(f1, f2, mode, dict(auto_bf=False), note=False)  # guided on these ~1k features too
-print("FOREGROUND_COMPILE", total)
-from guidedmatch import kernels
-from guidedmatch.spatial_order import _kernels as so
-print("USED", sorted(n for m in (kernels, so) for n, v in vars(m).items() if getattr(v, "overloads", None)))
-"""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "GUIDEDMATCH_BACKGROUND_COMPILE": "1"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "FOREGROUND_COMPILE 0.0" in out.stdout, out.stdout
-    used = out.stdout.split("USED")[1]
-    for name in ("_guided_ser", "top2_gemm_serial", "counting_order", "_to_uint8_exact", "_gap_kernel",
-                 "_refine_window_nb", "_sweep_kendall", "_inversions_dense"):
-        assert f"'{name}'" in used  # the warm-ups did reach (load) every kernel: the check above is not vacuous
-    assert out.stdout.count("compiling Numba kernels") == 1
-
-
 def test_cache_is_cold_reads_the_numba_index():
     from guidedmatch import jit, kernels
 

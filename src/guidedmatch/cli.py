@@ -190,7 +190,7 @@ def cmd_match(args) -> int:
     if args.plot:
         check_output_path(args.plot, "--plot")
 
-    from .jit import background_compile
+    from .jit import background_compile, guided_kernels_needed
 
     with background_compile(args.detector, (args.mode,)) as bg:  # first run: kernels compile on both cores meanwhile
         img1 = load_image(args.img1)
@@ -199,6 +199,8 @@ def cmd_match(args) -> int:
         f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, detector_options, args.max_image_size,
                               (args.img1, args.img2))
         t_det = time.perf_counter() - t0
+        if bg and not guided_kernels_needed(f1, f2, (args.mode,), config):
+            bg.cancel()  # brute force at these feature counts: the helpers' kernels are not needed
         waited = bg.wait()
     (result, models), time_s, compile_s = timed_match(f1, f2, args.mode, config, return_models=True)
     compile_s += waited
@@ -254,7 +256,7 @@ def cmd_demo(args) -> int:
     for name in ("demo_matches.png", "demo_results.json"):
         check_output_path(out / name, "--out")
     w, h = args.size
-    from .jit import background_compile, warm_up
+    from .jit import background_compile, guided_kernels_needed, warm_up
 
     with background_compile(args.detector, MODES) as bg:  # first run: kernels compile on both cores meanwhile
         print(f"[1/4] rendering a synthetic two-view scene {w}x{h}, camera roll {args.roll:g} deg (seed {args.seed})")
@@ -264,6 +266,8 @@ def cmd_demo(args) -> int:
         f2 = detect(scene.image2, args.detector, args.max_features)
         print(f"      {len(f1)} x {len(f2)} features")
         compile_s, warmed = 0.0, []
+        if bg and not guided_kernels_needed(f1, f2, MODES):
+            bg.cancel()  # every mode is brute force at these feature counts: the helpers' kernels are not needed
         if bg:  # first run: untimed work the demo does anyway while the helpers compile -- import Matplotlib, then
             # warm each mode up as soon as the helper compiling its kernels has finished
             plots._plt()

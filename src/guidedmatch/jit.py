@@ -354,6 +354,26 @@ class BackgroundCompile:
                 p.wait()
         self.procs = {}
 
+    def cancel(self) -> None:
+        """Stop the helpers: the run turned out not to need their kernels (:func:`guided_kernels_needed`); the
+        foreground compiles what it does need. Numba writes a cache entry's data before its index entry, atomically,
+        so a killed helper leaves no broken entry."""
+        self.stop()
+        self.helpers, self.helper_seconds = 0, 0.0
+
+
+def guided_kernels_needed(f1, f2, modes, config=None) -> bool:
+    """Whether matching ``f1`` with ``f2`` in any of ``modes`` runs the guided matcher, i.e. a guided mode that
+    ``auto_bf`` does not replace by brute force at these feature counts (e.g. ORB below 12000 features: every
+    mode is brute force, so the guided and spatial-order kernels the helpers compile would never be used)."""
+    from .config import MatcherConfig, Mode
+    from .matcher import _bf_wins
+    from .validation import config_from
+
+    cfg = config_from(MatcherConfig, config)
+    binary = np.asarray(f1.descriptors).dtype == np.uint8
+    return any(Mode.parse(m).guided and _bf_wins(cfg, len(f1), len(f2), binary) is None for m in modes)
+
 
 def _background_wanted() -> bool:
     """``GUIDEDMATCH_BACKGROUND_COMPILE``: ``0`` never, ``1`` always, unset (or ``auto``): always where helpers are
