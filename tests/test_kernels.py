@@ -639,3 +639,30 @@ def test_first_nonempty_equals_a_loop(pts, width, axis):
     got = kernels.first_nonempty(S)
     assert got.dtype == np.int64 and got.flags.c_contiguous
     np.testing.assert_array_equal(got, want)
+
+
+def test_chunked_runs_in_threads_and_survives_a_fork():
+    import multiprocessing
+    import threading
+
+    seen = set()
+
+    def fn(a, b):
+        seen.add(threading.get_ident())
+        return (a, b)
+
+    parts = kernels._chunked(fn, 1000, 100, threads=2)
+    assert parts == [(0, 500), (500, 1000)] and len(seen) == 2  # contiguous chunks, in order, two threads
+    assert kernels._chunked(fn, 99, 100, threads=2) == [(0, 99)]  # small: the calling thread only
+    if "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    ctx = multiprocessing.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=lambda: q.put(kernels._chunked(lambda a, b: b - a, 1000, 100, threads=2)))
+    p.start()
+    p.join(60)
+    if p.exitcode is None:
+        p.kill()
+        p.join()
+    assert p.exitcode == 0, "a forked child must not hang on its parent's thread pool"
+    assert q.get(timeout=5) == [500, 500]

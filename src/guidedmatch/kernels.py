@@ -12,6 +12,7 @@ Index ``-1`` and distance ``+inf`` mean "no such candidate".
 """
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import numpy as np
@@ -483,7 +484,7 @@ _guided_ser_fm = njit(parallel=False, cache=True, nogil=True,
 #: calls) waking threads costs more than it saves on 2 cores
 PARALLEL_MIN_QUERIES = 2048
 
-_POOL: list = [None, 0]  # [ThreadPoolExecutor, its number of threads]
+_POOL: list = [None, 0, 0]  # [ThreadPoolExecutor, its number of threads, the process id that started it]
 
 
 def num_threads() -> int:
@@ -504,12 +505,13 @@ def _chunked(fn, n: int, min_rows: int, threads: int | None = None):
     if k == 1:
         return [fn(0, n)]
     cuts = [n * i // k for i in range(k + 1)]
-    if _POOL[0] is None or _POOL[1] < k:
+    pid = os.getpid()
+    if _POOL[0] is None or _POOL[1] < k or _POOL[2] != pid:  # a forked child has none of its parent's threads
         from concurrent.futures import ThreadPoolExecutor
 
-        if _POOL[0] is not None:
+        if _POOL[0] is not None and _POOL[2] == pid:
             _POOL[0].shutdown(wait=False)
-        _POOL[0], _POOL[1] = ThreadPoolExecutor(k, thread_name_prefix="guidedmatch-kernel"), k
+        _POOL[:] = [ThreadPoolExecutor(k, thread_name_prefix="guidedmatch-kernel"), k, pid]
     futures = [_POOL[0].submit(fn, a, b) for a, b in zip(cuts[1:-1], cuts[2:])]
     first = fn(cuts[0], cuts[1])  # the calling thread takes the first chunk
     return [first] + [f.result() for f in futures]
