@@ -35,6 +35,8 @@ FEATURE_SETS = {
     "50k": dict(peak_threshold=0.002, max_num_features=60000),
 }
 THREADS = 2
+#: the backend runs of the scaling part: tag -> options of ``guidedmatch colmap``
+WORKER_RUNS = {"0": "--workers 0", "0t1": "--workers 0 --threads 1", "1": "--workers 1", "2": "--workers 2"}
 SRC = str(Path(__file__).resolve().parents[2])
 
 
@@ -56,11 +58,17 @@ def _timed(cmd: list[str], log: Path | None = None) -> dict:
         summary = json.loads(lines[-1]) if lines else {}
         out["summary"] = {k: summary.get(k) for k in ("done", "skipped", "failed", "wall_s", "backend", "workers",
                                                       "backend_reason", "matches", "inliers", "verified_pairs",
-                                                      "match_s", "load_s", "startup_s", "shutdown_s",
+                                                      "match_s", "load_s", "startup_s", "shutdown_s", "threads",
                                                       "image_loads", "cache_hits", "work")}
     if r.returncode != 0:
         raise RuntimeError(f"{out['cmd']} failed ({r.returncode}): {r.stderr.strip()[-2000:]}")
     return out
+
+
+def _backend(s: dict) -> str:
+    if s.get("backend") == "in-process":
+        return f"in-process ({s.get('threads', 1)} thread{'s' if s.get('threads', 1) != 1 else ''})"
+    return f"{s.get('backend')} ({s.get('workers')})"
 
 
 def extract(image_dir: Path, db: Path, options: dict) -> dict:
@@ -145,14 +153,15 @@ print(len(recs), 0 if best is None else best.num_reg_images(), time.perf_counter
 
 
 def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling: bool = True, note: str = "",
-        map_colmap_sets=("default",)) -> dict:
+        map_colmap_sets=("default",), reuse: bool = False) -> dict:
     from .meta import run_metadata, write_json
 
     if not image_dir.is_dir():
         raise FileNotFoundError(f"Herz-Jesus-P8 images not found: {image_dir}")
     work.mkdir(parents=True, exist_ok=True)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     result = dict(meta=run_metadata(), threads=THREADS, images=str(image_dir), sets={}, run_note=note,
-                  note="machine shared with other jobs while running: wall times are noisy")
+                  note=f"load average {load:.1f} when the run started (2 cores): wall times are noisy when it is > 1")
     old = out_dir / "collection.json"
     if old.exists():  # keep the sets of an earlier run that this one does not redo
         with open(old) as fh:
@@ -161,10 +170,13 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
         map_colmap = name in map_colmap_sets
         print(f"== {name}: extracting", flush=True)
         base = work / f"{name}.db"
-        if base.exists():
-            base.unlink()
         row = dict(extraction_options=FEATURE_SETS[name])
-        row["extract"] = extract(image_dir, base, FEATURE_SETS[name])
+        if reuse and base.exists():  # the features of an earlier run of this bench (same options), not re-extracted
+            row["extract"] = dict(reused=str(base))
+        else:
+            if base.exists():
+                base.unlink()
+            row["extract"] = extract(image_dir, base, FEATURE_SETS[name])
         row["features"] = db_stats(base)
 
         def copy(tag: str) -> Path:
@@ -194,14 +206,15 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
             row["mapping_colmap"] = mapping(cdb, image_dir, work / f"{name}-sparse-colmap")
         if scaling:
             s = row["ours"]["summary"]
-            auto = "0" if s["backend"] == "in-process" else str(s["workers"])
-            for w in ("0", "1", "2"):
+            auto = "0" if s["backend"] == "in-process" and s.get("threads", 1) > 1 else (
+                "0t1" if s["backend"] == "in-process" else str(s["workers"]))
+            for w in WORKER_RUNS:
                 if w == auto:  # the auto run was this configuration: not run twice
                     row[f"workers_{w}"] = dict(row["ours"], same_as="auto")
                     continue
-                print(f"== {name}: --workers {w}", flush=True)
+                print(f"== {name}: {WORKER_RUNS[w]}", flush=True)
                 wdb = copy(f"w{w}")
-                row[f"workers_{w}"] = ours(wdb, work / f"{name}-w{w}.jsonl", "--workers", w)
+                row[f"workers_{w}"] = ours(wdb, work / f"{name}-w{w}.jsonl", *WORKER_RUNS[w].split())
                 row[f"workers_{w}"]["db"] = db_stats(wdb)
         c, o = row["colmap"], row["ours"]
         row["ratios"] = dict(
@@ -209,7 +222,8 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
             inliers_ours_over_colmap=o["db"]["verified_inliers"] / max(1, c["db"]["verified_inliers"]),
             workers_2_over_1=(row["workers_2"]["wall_s"] / row["workers_1"]["wall_s"]) if scaling else None,
             workers_2_over_1_matching=(row["workers_2"]["summary"]["wall_s"] / row["workers_1"]["summary"]["wall_s"])
-            if scaling else None)
+            if scaling else None,
+            threads_2_over_1=(row["workers_0"]["wall_s"] / row["workers_0t1"]["wall_s"]) if scaling else None)
         result["sets"][name] = row
         write_json(out_dir / "collection.json", result)
     (out_dir / "collection.md").write_text(markdown(result))
@@ -236,25 +250,26 @@ def markdown(result: dict) -> str:
                      f"{c['db']['verified_pairs']} | {c['db']['verified_inliers']} | {reg_c} |")
         s = o.get("summary", {})
         lines.append(f"| {feat} | guidedmatch colmap (auto) | {o['wall_s']:.2f} | {s.get('wall_s', 0):.2f} | "
-                     f"{s.get('backend')} ({s.get('workers')}) | {o['db']['verified_pairs']} | "
+                     f"{_backend(s)} | {o['db']['verified_pairs']} | "
                      f"{o['db']['verified_inliers']} | {row['mapping_ours']['registered']}/8 |")
         r = row["rerun"]
         lines.append(f"| {feat} | rerun (all skipped: {r['summary'].get('skipped')}) | {r['wall_s']:.2f} | "
                      f"{r['summary'].get('wall_s', 0):.2f} | - | - | - | - |")
-        for w in ("0", "1", "2"):
+        for w in WORKER_RUNS:
             if f"workers_{w}" in row:
                 x = row[f"workers_{w}"]
                 same = " (= the auto run)" if x.get("same_as") else ""
-                lines.append(f"| {feat} | guidedmatch colmap --workers {w}{same} | {x['wall_s']:.2f} | "
-                             f"{x['summary'].get('wall_s', 0):.2f} | {x['summary'].get('backend')} | "
+                lines.append(f"| {feat} | guidedmatch colmap {WORKER_RUNS[w]}{same} | {x['wall_s']:.2f} | "
+                             f"{x['summary'].get('wall_s', 0):.2f} | {_backend(x['summary'])} | "
                              f"{x['db']['verified_pairs']} | {x['db']['verified_inliers']} | - |")
     lines += ["", "| features | ours / COLMAP time | ours / COLMAP verified inliers | 2 / 1 workers (wall) | "
-              "2 / 1 workers (inner) |", "|---|---|---|---|---|"]
+              "2 / 1 workers (inner) | in-process 2 / 1 threads (wall) |", "|---|---|---|---|---|---|"]
     for name, row in result["sets"].items():
         q = row["ratios"]
         fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
         lines.append(f"| {name} | {fmt(q['time_ours_over_colmap'])} | {fmt(q['inliers_ours_over_colmap'])} | "
-                     f"{fmt(q['workers_2_over_1'])} | {fmt(q['workers_2_over_1_matching'])} |")
+                     f"{fmt(q['workers_2_over_1'])} | {fmt(q['workers_2_over_1_matching'])} | "
+                     f"{fmt(q.get('threads_2_over_1'))} |")
     lines += ["", "inner = time inside the process: COLMAP's match_exhaustive call; ours: the engine's wall time "
               "(matching, verdicts, writes, cluster start/stop), without the Python start-up and imports.", ""]
     return "\n".join(lines)
@@ -280,7 +295,7 @@ def figure(result: dict, path: Path) -> None:
                                              for n in names])
         ax.set_title(label, fontsize=10)
         ax.legend(fontsize=8)
-    fig.suptitle("Herz-Jesus-P8, 28 pairs, 2 CPU threads (shared machine)", fontsize=10)
+    fig.suptitle(f"Herz-Jesus-P8, 28 pairs, 2 CPU threads ({result.get('note', '')})", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -296,10 +311,12 @@ def main(argv=None) -> int:
     p.add_argument("--sets", default="default,50k")
     p.add_argument("--no-scaling", action="store_true", help="skip the --workers 0/1/2 runs")
     p.add_argument("--note", default="", help="what code ran (recorded in the JSON and the table)")
+    p.add_argument("--reuse", action="store_true", help="reuse WORK/<set>.db of an earlier run (no re-extraction)")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note)
+    res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note,
+              reuse=a.reuse)
     print(markdown(res))
     return 0
 
