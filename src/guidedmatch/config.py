@@ -119,8 +119,8 @@ class MatcherConfig:
                                          # multiple of max(random-inlier bound, 15); a weaker verified pair is matched
                                          # unguided within max_unguided (0001-0007 at 8192: a weak F guided 234 wrong
                                          # matches into its band, BF+ratio returns 163)
-    frame_hypotheses: bool = True        # verdicts: when RANSAC on all the evidence verifies no F, fit one more F on the
-                                         # correspondences whose detector orientations turned alike (geometry step 4;
+    frame_hypotheses: bool = True        # verdicts: when RANSAC on all the evidence verifies nothing, fit one more F
+                                         # on the matches whose detector orientations turned alike (geometry step 4;
                                          # Herz-Jesus 0000-0006 at ~40k: 9.6 % -> 27 % correct, no-overlap -> verified);
                                          # the first guiding F must then pass the verdict's rule too (matcher step 3)
     verdict_iters: int = 1000            # RANSAC iterations of each verdict check: on 8192 SIFT, 33 pairs x 4 evidence

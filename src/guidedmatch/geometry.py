@@ -18,7 +18,7 @@ that from the correspondences alone:
    (COLMAP's ``max_H_inlier_ratio`` rule), else ``F``; otherwise ``"no-overlap"``;
 4. **a second search when the first finds nothing** (``frames``): the bound lets ~5 % correct correspondences prove
    an overlap, but RANSAC cannot find them there -- an all-inlier 7-point sample at inlier ratio ``w`` needs about
-   ``4.6 / w^7`` draws (10 % -> 46 M). When step 3 verifies no F and the detector orientations of the evidence are
+   ``4.6 / w^7`` draws (10 % -> 46 M). When step 3 verifies nothing and the detector orientations of the evidence are
    given, F is fitted once more on the correspondences whose orientation change lies within
    ``frame_tolerance_deg`` of the most common one (:func:`consistent_frames`; Lowe 2004 §7.3 clusters matches the
    same way), and kept when it has more independent inliers over *all* the evidence. Only the search changes: the
@@ -338,9 +338,9 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
             run's RANSAC F when it has more (independent) inliers. The random-inlier bound is unchanged: the prior
             is one more hypothesis, it was itself the best of a RANSAC run on a subset.
         frames: optional ``(angles1 (M,), angles2 (M,))`` detector orientations (degrees) of the evidence's
-            keypoints. When the F of all the evidence (and ``F_prior``) is not verified, a second F is fitted on the
-            :func:`consistent_frames` subset (``frame_tolerance_deg``) and kept when it has more independent inliers
-            over *all* the evidence (module doc, step 4); the bound is unchanged.
+            keypoints. When neither F (from all the evidence or ``F_prior``) nor H is verified, a second F is fitted
+            on the :func:`consistent_frames` subset (``frame_tolerance_deg``) and kept when it has more independent
+            inliers over *all* the evidence (module doc, step 4); the bound is unchanged.
 
     Returns:
         :class:`TwoViewGeometry`; never raises on degenerate input (too few, collinear, identical points).
@@ -392,7 +392,14 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
         if n_p > nf:
             F, nf = np.asarray(F_prior, np.float64), n_p
             ev.update(F_inliers_raw=int(inl_p.sum()), F_from_prior=True)
-    if frames is not None and not (F is not None and nf >= c.min_inliers and nf > bound_f):
+    H = _fit_homography(a, b, c.threshold_px, c.max_iters, c.seed, prosac=c.method == "prosac")
+    nh = 0
+    if H is not None:
+        inl_h = transfer_error(H, a, b) <= c.threshold_px
+        nh = _independent_inliers(a, b, inl_h, None, c.threshold_px, size1, size2)
+        ev["H_inliers_raw"] = int(inl_h.sum())
+    ok_h = H is not None and nh >= c.min_inliers and nh > bound_h
+    if frames is not None and not ok_h and not (F is not None and nf >= c.min_inliers and nf > bound_f):
         # low inlier ratio: RANSAC on all the evidence cannot draw an all-inlier sample in max_iters; the
         # orientation-consistent subset holds most correct correspondences at a 2-4x higher ratio (step 4)
         sub = consistent_frames(np.asarray(frames[0]).reshape(-1)[finite], np.asarray(frames[1]).reshape(-1)[finite],
@@ -409,15 +416,8 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
                     F, nf = fs.F, n_s
                     ev.pop("F_from_prior", None)
                     ev.update(F_inliers_raw=int(inl_s.sum()), F_from_frames=True)
-    H = _fit_homography(a, b, c.threshold_px, c.max_iters, c.seed, prosac=c.method == "prosac")
-    nh = 0
-    if H is not None:
-        inl_h = transfer_error(H, a, b) <= c.threshold_px
-        nh = _independent_inliers(a, b, inl_h, None, c.threshold_px, size1, size2)
-        ev["H_inliers_raw"] = int(inl_h.sum())
     ev.update(F_inliers=nf, H_inliers=nh)
     ok_f = F is not None and nf >= c.min_inliers and nf > bound_f
-    ok_h = H is not None and nh >= c.min_inliers and nh > bound_h
     if ok_h and (not ok_f or nh >= c.h_ratio * nf):
         with np.errstate(invalid="ignore"):
             inl = transfer_error(H, r1, r2) <= c.threshold_px

@@ -32,16 +32,19 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    model selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
    :func:`~guidedmatch.geometry.two_view_geometry` decides whether they share a geometry beyond chance; the first
    model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
-   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus
-   the exact rent without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining
-   features are not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first
+   evidence never guides. With ``frame_hypotheses`` the verdict also searches the orientation-consistent subset of
+   the evidence when RANSAC on all of it verifies nothing (low inlier ratio, geometry step 4). When the start has
+   spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus the exact rent without a verified
+   verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are not matched (fallback
+   ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first
    model after ``update_every`` exact unguided correspondences, no gate, no exit.
-3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit, then after every ``update_every`` (200)
-   newly accepted correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 fits
-   in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E; validated over the
-   keypoints by :func:`~guidedmatch.alignment.safe_alignment` -- local scale, orientation, line at infinity -- with
-   the fallback requested approach -> ``c_inplane`` -> none, each rejection reported), then the spatial-order model
-   on aligned x-coordinates (§III-B, §III-C).
+3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit (with ``frame_hypotheses`` its F must pass
+   the verdict's rule on the evidence, else the verdict's F guides, :meth:`_GuidedRun.fit_fundamental`), then after
+   every ``update_every`` (200) newly accepted correspondences the models are refit on *all* correspondences so far
+   (``num_updates`` = 3 fits in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA,
+   §III-E; validated over the keypoints by :func:`~guidedmatch.alignment.safe_alignment` -- local scale,
+   orientation, line at infinity -- with the fallback requested approach -> ``c_inplane`` -> none, each rejection
+   reported), then the spatial-order model on aligned x-coordinates (§III-B, §III-C).
 4. **Guided phase**: between updates, batches are matched in their search regions under the current models; the
    batch size follows the observed acceptance rate so the next update comes after about one batch.
 5. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized call of the
@@ -195,7 +198,8 @@ def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary, mode: Mode, auto_reason:
         pairs, dist = pairs[sel], dist[sel]
     t1 = time.perf_counter()
     geometry = two_view_geometry(f1.keypoints[pairs[:, 0]], f2.keypoints[pairs[:, 1]], f1.image_size,
-                                 f2.image_size, VerdictConfig(seed=c.seed), frames=_frames(c, f1, f2, pairs[:, 0], pairs[:, 1]))
+                                 f2.image_size, VerdictConfig(seed=c.seed),
+                                 frames=_frames(c, f1, f2, pairs[:, 0], pairs[:, 1]))
     n1, n2 = len(d1), len(d2)
     details = dict(res.stats.details, verdict_s=time.perf_counter() - t1)
     flags = default_flags(len(pairs))
