@@ -26,8 +26,8 @@ that from the correspondences alone:
    Herz-Jesus-P8 0000-0006 at ~40k features (the guided matcher's 697 unguided correspondences, 67 correct under
    the GT cameras): the subset has 231 correspondences with 62 correct (9.6 % -> 27 %); its F has 71 independent
    inliers (66 correct) against a bound of 33 (RANSAC on all: 16 at 1000 iterations; brute force's own 680
-   ratio-test matches: 20 at 10000, 67 only at 100000); the 5 unrelated pairs stay at <= 20 against bounds of
-   23-28 with it.
+   ratio-test matches: 20 at 10000, 67 only at 100000). Null pairs (Herz-Jesus x 24 Unsplash photos and photo x
+   photo, 468 pairs at 8192 features, 192 at ~40k, through the matcher): none verified with or without it.
 
 Calibration (issue 11; Herz-Jesus-P8 and Unsplash photos, scripts ``/tmp/pairs/null_cal.py`` and
 ``/tmp/pairs/evidence.py`` of the pairs helper, numbers in the commit messages):

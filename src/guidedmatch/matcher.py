@@ -36,8 +36,8 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    the evidence when RANSAC on all of it verifies nothing (low inlier ratio, geometry step 4). When the start has
    spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus the exact rent without a verified
    verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are not matched (fallback
-   ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first
-   model after ``update_every`` exact unguided correspondences, no gate, no exit.
+   ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after ``update_every`` exact
+   unguided correspondences, no gate, no exit.
 3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit (with ``frame_hypotheses`` its F must pass
    the verdict's rule on the evidence, else the verdict's F guides, :meth:`_GuidedRun.fit_fundamental`), then after
    every ``update_every`` (200) newly accepted correspondences the models are refit on *all* correspondences so far
