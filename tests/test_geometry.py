@@ -28,19 +28,57 @@ def test_no_geometry_is_never_verified(seed, m):
 
 
 @settings(max_examples=8, deadline=None)
-@given(seed=st.integers(0, 10_000), outliers=st.floats(0.0, 0.8))
+@given(seed=st.integers(0, 10_000), outliers=st.floats(0.0, 0.6))
 def test_general_scene_is_verified_F(seed, outliers):
+    """Up to 60 % outliers the model and its inlier mask are right (measured over 189 seeds: >= 91 % of the true
+    correspondences inliers, <= 7 % of the outliers); see the next test beyond."""
     s = general_pair(seed, n_points=300, noise=0.5)
     x1, x2 = s.x1n.copy(), s.x2n.copy()
     rng = np.random.default_rng(seed)
     bad = rng.random(len(x1)) < outliers
     x2[bad] = rng.uniform(0, 1, (bad.sum(), 2)) * SIZE
     g = two_view_geometry(x1, x2, SIZE, SIZE)
-    assert g and g.verdict == "verified" and g.model == "F"
+    assert g and g.verdict == "verified" and g.model in ("F", "H")
     assert g.inliers.shape == (len(x1),) and g.num_inliers == int(g.inliers.sum())
+    if g.model == "H":
+        # COLMAP's rule (H inliers >= h_ratio * F inliers) may call a shallow random scene planar -- only when a
+        # homography really explains the true correspondences (seed 221: 66 of 71 at 75 % outliers)
+        import cv2
+
+        _, mask = cv2.findHomography(s.x1n[~bad], s.x2n[~bad], cv2.RANSAC, VerdictConfig().threshold_px)
+        assert mask.mean() >= 0.7
+        assert np.mean(g.inliers[~bad]) > 0.8
+        return
     # the inlier mask is right on nearly every correspondence (a random point can fall into a band by chance)
     assert np.mean(g.inliers[~bad]) > 0.95
     assert not bad.any() or np.mean(g.inliers[bad]) < 0.15
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_general_scene_with_80_percent_outliers_is_still_verified(seed):
+    """At 80 % outliers (60 true of 300) the evidence still beats chance, but 10,000 RANSAC iterations do not always
+    find the best F (a 7-point all-inlier sample has probability 1.3e-5): only the verdict is asserted (measured
+    over 189 seeds: always verified, 44-100 % of the true correspondences inliers, H chosen on 10)."""
+    s = general_pair(seed, n_points=300, noise=0.5)
+    x1, x2 = s.x1n.copy(), s.x2n.copy()
+    rng = np.random.default_rng(seed)
+    bad = rng.random(len(x1)) < 0.8
+    x2[bad] = rng.uniform(0, 1, (bad.sum(), 2)) * SIZE
+    g = two_view_geometry(x1, x2, SIZE, SIZE)
+    assert g and g.verdict == "verified"
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_general_scene_with_depth_is_F_at_any_outlier_share(seed):
+    """The F/H choice itself on scenes no homography explains: deep slab (depth 2-20), long baseline."""
+    s = general_pair(seed, n_points=300, noise=0.5, depth=(2.0, 20.0), baseline=2.0)
+    rng = np.random.default_rng(seed)
+    x1, x2 = s.x1n.copy(), s.x2n.copy()
+    bad = rng.random(len(x1)) < 0.6
+    x2[bad] = rng.uniform(0, 1, (bad.sum(), 2)) * SIZE
+    g = two_view_geometry(x1, x2, SIZE, SIZE)
+    assert g and g.model == "F"
 
 
 def test_repeated_texture_cluster_is_not_evidence():
