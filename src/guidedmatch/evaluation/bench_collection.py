@@ -2,13 +2,15 @@
 
 ``python -m guidedmatch.evaluation.bench_collection [--out benchmarks/results/collection] [--work DIR]``
 
-On Herz-Jesus-P8 (8 images, 3072x2048, 28 pairs), for each feature set:
+On Herz-Jesus-P8 (8 images, 3072x2048, 28 pairs), for each feature set -- and on ``mixed``: the same 8 images plus
+8 unrelated Unsplash photos (16 images, 120 pairs, 92 of them without overlap, the common case of a real collection):
 
-1. one COLMAP database with ``pycolmap.extract_features`` (SIFT, CPU, 2 threads; ``default``: COLMAP's defaults,
-   8192 features; ``50k``: ``peak_threshold=0.002``, ``max_num_features=60000``), copied for every run below;
+1. one COLMAP database with ``pycolmap.extract_features`` (SIFT, CPU, 2 threads; ``default`` and ``mixed``: COLMAP's
+   defaults, 8192 features; ``50k``: ``peak_threshold=0.002``, ``max_num_features=60000``), copied for every run;
 2. as fresh processes (Python start-up and imports included in the wall time):
    * ``guidedmatch colmap DB --pairs exhaustive`` (auto backend: the in-process / local-cluster rule), and with
-     ``--workers 1`` / ``--workers 2`` (the 1 vs 2 local workers scaling) and ``--workers 0`` (in-process);
+     ``--workers 1`` / ``--workers 2`` (the 1 vs 2 local workers scaling) and ``--workers 0`` (in-process, one thread
+     per core) / ``--workers 0 --threads 1``;
    * ``pycolmap.match_exhaustive`` on a copy (CPU, ``num_threads=2``, COLMAP's matching and verification
      defaults);
    * the rerun of our command on the finished database (every pair skipped);
@@ -33,7 +35,24 @@ DATA_REL = "pose_pairs/strecha/Herz-Jesus-P8/images"
 FEATURE_SETS = {
     "default": dict(),  # COLMAP's defaults: max_num_features 8192, peak_threshold 0.00667
     "50k": dict(peak_threshold=0.002, max_num_features=60000),
+    "mixed": dict(),    # COLMAP's defaults on Herz-Jesus-P8 + MIXED_PHOTOS unrelated photos: most pairs do not overlap
 }
+#: unrelated photos added to the 8 Herz-Jesus-P8 images in the "mixed" set (the first of photos/unsplash, by name)
+MIXED_PHOTOS = 8
+
+
+def mixed_images(image_dir: Path, data_root: Path, work: Path) -> Path:
+    """A folder of symbolic links (the data stays in place): the Herz-Jesus-P8 images and the first
+    :data:`MIXED_PHOTOS` Unsplash photos -- 16 images, 120 pairs of which 92 do not overlap."""
+    from ..datasets import list_photos
+
+    d = work / "mixed-images"
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    for src in sorted(image_dir.iterdir()) + list_photos(data_root)[:MIXED_PHOTOS]:
+        (d / src.name).symlink_to(src.resolve())
+    return d
 THREADS = 2
 #: the backend runs of the scaling part: tag -> options of ``guidedmatch colmap``
 WORKER_RUNS = {"0": "--workers 0", "0t1": "--workers 0 --threads 1", "1": "--workers 1", "2": "--workers 2"}
@@ -153,7 +172,7 @@ print(len(recs), 0 if best is None else best.num_reg_images(), time.perf_counter
 
 
 def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling: bool = True, note: str = "",
-        map_colmap_sets=("default",), reuse: bool = False) -> dict:
+        map_colmap_sets=("default", "mixed"), reuse: bool = False, data_root: Path | None = None) -> dict:
     from .meta import run_metadata, write_json
 
     if not image_dir.is_dir():
@@ -166,8 +185,10 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
     if old.exists():  # keep the sets of an earlier run that this one does not redo
         with open(old) as fh:
             result["sets"] = {k: v for k, v in json.load(fh).get("sets", {}).items() if k not in sets}
+    herz = image_dir
     for name in sets:
         map_colmap = name in map_colmap_sets
+        image_dir = mixed_images(herz, data_root, work) if name == "mixed" else herz
         print(f"== {name}: extracting", flush=True)
         base = work / f"{name}.db"
         row = dict(extraction_options=FEATURE_SETS[name])
@@ -245,13 +266,14 @@ def markdown(result: dict) -> str:
         f = row["features"]
         feat = f"{name} ({f['features_mean']:.0f}/image)"
         c, o = row["colmap"], row["ours"]
-        reg_c = f"{row['mapping_colmap']['registered']}/8" if "mapping_colmap" in row else "not run"
+        nimg = f.get("images", 8)
+        reg_c = f"{row['mapping_colmap']['registered']}/{nimg}" if "mapping_colmap" in row else "not run"
         lines.append(f"| {feat} | COLMAP match_exhaustive | {c['wall_s']:.2f} | {c['inner_s']:.2f} | 2 threads | "
                      f"{c['db']['verified_pairs']} | {c['db']['verified_inliers']} | {reg_c} |")
         s = o.get("summary", {})
         lines.append(f"| {feat} | guidedmatch colmap (auto) | {o['wall_s']:.2f} | {s.get('wall_s', 0):.2f} | "
                      f"{_backend(s)} | {o['db']['verified_pairs']} | "
-                     f"{o['db']['verified_inliers']} | {row['mapping_ours']['registered']}/8 |")
+                     f"{o['db']['verified_inliers']} | {row['mapping_ours']['registered']}/{nimg} |")
         r = row["rerun"]
         lines.append(f"| {feat} | rerun (all skipped: {r['summary'].get('skipped')}) | {r['wall_s']:.2f} | "
                      f"{r['summary'].get('wall_s', 0):.2f} | - | - | - | - |")
@@ -308,7 +330,7 @@ def main(argv=None) -> int:
     p.add_argument("--images", default=None, help=f"image folder (default DATA/{DATA_REL})")
     p.add_argument("--out", default="benchmarks/results/collection")
     p.add_argument("--work", default="/tmp/guidedmatch-bench-collection", help="databases (not in the repo)")
-    p.add_argument("--sets", default="default,50k")
+    p.add_argument("--sets", default="default,50k,mixed")
     p.add_argument("--no-scaling", action="store_true", help="skip the --workers 0/1/2 runs")
     p.add_argument("--note", default="", help="what code ran (recorded in the JSON and the table)")
     p.add_argument("--reuse", action="store_true", help="reuse WORK/<set>.db of an earlier run (no re-extraction)")
@@ -316,7 +338,7 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note,
-              reuse=a.reuse)
+              reuse=a.reuse, data_root=Path(a.data))
     print(markdown(res))
     return 0
 
