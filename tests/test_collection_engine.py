@@ -156,6 +156,29 @@ def test_in_process_matches_every_pair_like_the_direct_calls(views, tmp_path):
     assert "10 matched" in rep.summary()
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+def test_in_process_threads_give_the_direct_calls_matches_and_report_the_thread_count(views, threads):
+    # the thread pool changes the order pairs finish in, never a pair's matches or verdict
+    src, sink = DictSource(views), ListSink()
+    pairs = all_pairs(src.names())
+    rep = match_collection(src, pairs, sink, dict(progress=False, workers=0, threads=threads, chunk_pairs=2))
+    assert rep.done == len(pairs) and not rep.failed and rep.totals["threads"] == threads
+    assert_same_as_reference(sink, views, pairs)
+    assert src.loads == 5 and f"{threads} thread" in rep.summary()
+
+
+def test_auto_backend_rule(monkeypatch):
+    from guidedmatch.collection import engine
+
+    monkeypatch.setattr(engine, "_usable_cores", lambda: 2)
+    cfg = CollectionConfig(inprocess_max_work=1000)
+    assert engine._choose_backend(cfg, None, 1000)[:2] == ("in-process", 0)
+    assert engine._choose_backend(cfg, None, 1001)[:2] == ("local-cluster", 2)
+    monkeypatch.setattr(engine, "_usable_cores", lambda: 1)
+    assert engine._choose_backend(cfg, None, 10**9)[0] == "in-process"
+    assert engine._choose_backend(CollectionConfig(workers=3), None, 1)[:2] == ("local-cluster", 3)
+
+
 def test_cache_bound_evicts_and_keeps_the_pair_being_matched(views):
     names = list(views)
     one = views[names[0]].keypoints.nbytes + views[names[0]].descriptors.nbytes

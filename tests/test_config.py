@@ -20,7 +20,7 @@ BAD = [
     ("ratio", 0.0), ("ratio", 1.5), ("ratio", NAN), ("single_candidate", "maybe"), ("mutual", 1), ("one_to_one", 0),
     ("one_to_one", "yes"), ("max_distance", NAN), ("ransac_threshold", INF), ("so_overlap", "k3d"),
     ("batch_size", 0), ("strip_px", 0.0), ("strip_px", -3.0), ("recheck", "true"), ("outside_window", "keep"),
-    ("min_model_matches", 7), ("seed", -1), ("seed", True),
+    ("min_model_matches", 7), ("seed", -1), ("seed", True), ("frame_hypotheses", 1), ("frame_hypotheses", "on"),
 ]
 
 

@@ -28,19 +28,57 @@ def test_no_geometry_is_never_verified(seed, m):
 
 
 @settings(max_examples=8, deadline=None)
-@given(seed=st.integers(0, 10_000), outliers=st.floats(0.0, 0.8))
+@given(seed=st.integers(0, 10_000), outliers=st.floats(0.0, 0.6))
 def test_general_scene_is_verified_F(seed, outliers):
+    """Up to 60 % outliers the model and its inlier mask are right (measured over 189 seeds: >= 91 % of the true
+    correspondences inliers, <= 7 % of the outliers); see the next test beyond."""
     s = general_pair(seed, n_points=300, noise=0.5)
     x1, x2 = s.x1n.copy(), s.x2n.copy()
     rng = np.random.default_rng(seed)
     bad = rng.random(len(x1)) < outliers
     x2[bad] = rng.uniform(0, 1, (bad.sum(), 2)) * SIZE
     g = two_view_geometry(x1, x2, SIZE, SIZE)
-    assert g and g.verdict == "verified" and g.model == "F"
+    assert g and g.verdict == "verified" and g.model in ("F", "H")
     assert g.inliers.shape == (len(x1),) and g.num_inliers == int(g.inliers.sum())
+    if g.model == "H":
+        # COLMAP's rule (H inliers >= h_ratio * F inliers) may call a shallow random scene planar -- only when a
+        # homography really explains the true correspondences (seed 221: 66 of 71 at 75 % outliers)
+        import cv2
+
+        _, mask = cv2.findHomography(s.x1n[~bad], s.x2n[~bad], cv2.RANSAC, VerdictConfig().threshold_px)
+        assert mask.mean() >= 0.7
+        assert np.mean(g.inliers[~bad]) > 0.8
+        return
     # the inlier mask is right on nearly every correspondence (a random point can fall into a band by chance)
     assert np.mean(g.inliers[~bad]) > 0.95
     assert not bad.any() or np.mean(g.inliers[bad]) < 0.15
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_general_scene_with_80_percent_outliers_is_still_verified(seed):
+    """At 80 % outliers (60 true of 300) the evidence still beats chance, but 10,000 RANSAC iterations do not always
+    find the best F (a 7-point all-inlier sample has probability 1.3e-5): only the verdict is asserted (measured
+    over 189 seeds: always verified, 44-100 % of the true correspondences inliers, H chosen on 10)."""
+    s = general_pair(seed, n_points=300, noise=0.5)
+    x1, x2 = s.x1n.copy(), s.x2n.copy()
+    rng = np.random.default_rng(seed)
+    bad = rng.random(len(x1)) < 0.8
+    x2[bad] = rng.uniform(0, 1, (bad.sum(), 2)) * SIZE
+    g = two_view_geometry(x1, x2, SIZE, SIZE)
+    assert g and g.verdict == "verified"
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_general_scene_with_depth_is_F_at_any_outlier_share(seed):
+    """The F/H choice itself on scenes no homography explains: deep slab (depth 2-20), long baseline."""
+    s = general_pair(seed, n_points=300, noise=0.5, depth=(2.0, 20.0), baseline=2.0)
+    rng = np.random.default_rng(seed)
+    x1, x2 = s.x1n.copy(), s.x2n.copy()
+    bad = rng.random(len(x1)) < 0.6
+    x2[bad] = rng.uniform(0, 1, (bad.sum(), 2)) * SIZE
+    g = two_view_geometry(x1, x2, SIZE, SIZE)
+    assert g and g.model == "F"
 
 
 def test_repeated_texture_cluster_is_not_evidence():
@@ -87,7 +125,8 @@ def test_degenerate_inputs_do_not_raise():
 
 
 @pytest.mark.parametrize("kw", [dict(threshold_px=0), dict(chance_factor=-1.0), dict(min_inliers=-1),
-                                dict(sigmas=float("nan"))])
+                                dict(sigmas=float("nan")), dict(frame_tolerance_deg=0.0),
+                                dict(frame_tolerance_deg=200.0)])
 def test_config_validation(kw):
     with pytest.raises(ValueError):
         VerdictConfig(**kw)
@@ -166,3 +205,91 @@ def test_F_prior_is_kept_only_when_it_explains_more():
     h = two_view_geometry(x1, x2, SIZE, SIZE, VerdictConfig(), F_prior=wrong)
     ref = two_view_geometry(x1, x2, SIZE, SIZE, VerdictConfig())
     assert "F_from_prior" not in h.evidence and h.evidence["F_inliers"] == ref.evidence["F_inliers"]
+
+
+# ------------------------------------------------------------------------------------- frame hypotheses (step 4)
+def _consistent_frames_reference(a1, a2, tol):
+    """Slow reference: window centres 0, 10, ..., 350 deg, the first with the most circular distances <= tol."""
+    ok = [x >= 0 and y >= 0 for x, y in zip(a1, a2)]
+    if not any(ok):
+        return None
+    d = [(y - x) % 360.0 for x, y in zip(a1, a2)]
+    circ = lambda u, v: min(abs(u - v) % 360.0, 360.0 - abs(u - v) % 360.0)  # noqa: E731
+    best, best_n = None, -1
+    for c in range(0, 360, 10):
+        n = sum(1 for k in range(len(d)) if ok[k] and circ(d[k], c) <= tol)
+        if n > best_n:
+            best, best_n = c, n
+    return [bool(ok[k] and circ(d[k], best) <= tol) for k in range(len(d))]
+
+
+@settings(max_examples=40, deadline=None)
+@given(data=st.data(), m=st.integers(1, 40), tol=st.sampled_from([5.0, 20.0, 45.0]))
+def test_consistent_frames_equals_reference(data, m, tol):
+    from hypothesis.extra.numpy import arrays
+
+    from guidedmatch.geometry import consistent_frames
+
+    # whole degrees plus a quarter: no angle difference lands exactly on a window edge (float ties)
+    ang = st.integers(-1, 359).map(lambda v: -1.0 if v < 0 else v + 0.25)
+    a1 = data.draw(arrays(np.float64, m, elements=ang))
+    a2 = data.draw(arrays(np.float64, m, elements=st.integers(0, 359).map(float)))
+    got = consistent_frames(a1, a2, tol)
+    ref = _consistent_frames_reference(a1.tolist(), a2.tolist(), tol)
+    assert (got is None and ref is None) or got.tolist() == ref
+
+
+def _low_ratio_scene(seed=0, n_true=60, n_false=540):
+    """``n_true`` correspondences of a known 3-D two-view geometry (3000 x 2000 px) among ``n_false`` wrong ones
+    (image-2 point uniform): 10 % correct, the ratio of Herz-Jesus 0000-0006 at ~40k. Detector orientations turn by
+    25 +- 5 deg on the correct ones, uniformly on the wrong ones."""
+    size = (3000, 2000)
+    s = general_pair(seed, n_points=n_true, size=size, f1=2500.0, f2=2500.0, noise=0.5, max_angle_deg=10.0)
+    rng = np.random.default_rng(seed)
+    x1 = np.r_[s.x1n, rng.uniform(0, 1, (n_false, 2)) * size]
+    x2 = np.r_[s.x2n, rng.uniform(0, 1, (n_false, 2)) * size]
+    a1 = rng.uniform(0, 360, n_true + n_false)
+    turn = np.r_[25.0 + rng.normal(0, 5, n_true), rng.uniform(0, 360, n_false)]
+    true = np.arange(n_true + n_false) < n_true
+    return x1, x2, a1, np.mod(a1 + turn, 360.0), true, size
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_frame_hypotheses_find_a_low_inlier_ratio_geometry(seed):
+    """10 % correct correspondences: above the random bound, but RANSAC on all of them cannot draw an all-inlier
+    sample (0.1^7); without frames the verdict is "no-overlap", with them the orientation-consistent subset (~50 %
+    correct) gives the F, counted over all the evidence against the same bound."""
+    x1, x2, a1, a2, true, size = _low_ratio_scene(seed)
+    cfg = VerdictConfig(max_iters=1000)
+    g0 = two_view_geometry(x1, x2, size, size, cfg)
+    assert g0.verdict == "no-overlap"  # the failure the rule fixes
+    g = two_view_geometry(x1, x2, size, size, cfg, frames=(a1, a2))
+    assert g.verdict == "verified" and g.model == "F" and g.evidence["F_from_frames"]
+    assert g.evidence["random_bound_F"] == g0.evidence["random_bound_F"]  # the rule is unchanged
+    assert g.inliers[true].mean() > 0.9 and g.inliers[~true].mean() < 0.05
+    # frames are tried only when the first search verifies nothing: a verified result is left as it is
+    easy = two_view_geometry(x1[true], x2[true], size, size, cfg, frames=(a1[true], a2[true]))
+    assert easy and "F_from_frames" not in easy.evidence and "frame_subset" not in easy.evidence
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_frame_hypotheses_do_not_verify_unrelated_correspondences(seed):
+    """The null case, at its worst for the rule: every orientation agrees (the subset is all the evidence but
+    a few) -- still no-overlap, since the inliers are counted against the same bound."""
+    rng = np.random.default_rng(seed)
+    size = (3000, 2000)
+    m = 600
+    x1, x2 = rng.uniform(0, 1, (m, 2)) * size, rng.uniform(0, 1, (m, 2)) * size
+    a1 = rng.uniform(0, 360, m)
+    a2 = a1 + np.where(rng.random(m) < 0.9, rng.normal(0, 5, m), rng.uniform(0, 360, m))
+    g = two_view_geometry(x1, x2, size, size, VerdictConfig(max_iters=1000), frames=(a1, np.mod(a2, 360)))
+    assert g.verdict == "no-overlap" and g.evidence["frame_subset"] > 0.8 * m
+
+
+def test_fundamental_support_is_the_verdicts_count():
+    from guidedmatch.geometry import fundamental_support
+
+    x1, x2, a1, a2, true, size = _low_ratio_scene(3)
+    g = two_view_geometry(x1, x2, size, size, VerdictConfig(max_iters=1000), frames=(a1, a2))
+    assert fundamental_support(g.F, x1, x2, size, size) == g.evidence["F_inliers"]
+    assert fundamental_support(None, x1, x2, size, size) == 0

@@ -673,3 +673,60 @@ def test_planar_rule_keeps_the_matches_off_a_dominant_plane():
     assert not _planar(SimpleNamespace(num_inliers=n_h), F, x1, x2)  # F explains all: a 3-D scene
     assert _planar(SimpleNamespace(num_inliers=n_h), F, x1[on], x2[on])  # the plane alone
     assert _planar(SimpleNamespace(num_inliers=n_h), None, x1, x2)  # no F to compare with
+
+
+# ------------------------------------------------------------------------------------- frame hypotheses
+def _low_ratio_features(seed=0, n=4000, n_true=480):
+    """A pair whose brute-force ratio-test matches are 12 % correct (Herz-Jesus 0000-0006 at ~40k: 10 %): ``n``
+    image-1 features, each with a distinct partner in image 2 of nearly the same descriptor; ``n_true`` partners
+    are the feature's projection under a known 3-D two-view geometry (3000 x 2000 px), the rest lie anywhere.
+    Detector orientations turn by 20 +- 5 deg between true partners, anyhow between the others."""
+    from guidedmatch.testing.twoview import general_pair
+
+    size = (3000, 2000)
+    s = general_pair(seed, n_points=n_true, size=size, f1=2500.0, f2=2500.0, noise=0.3, max_angle_deg=10.0)
+    rng = np.random.default_rng(seed)
+    x1 = np.r_[s.x1n, rng.uniform(0, 1, (n - n_true, 2)) * size]
+    x2 = np.r_[s.x2n, rng.uniform(0, 1, (n - n_true, 2)) * size]
+    base = rng.uniform(0, 255, (n, 64))
+    d1 = (base + rng.normal(0, 4, base.shape)).astype(np.float32)
+    d2 = (base + rng.normal(0, 4, base.shape)).astype(np.float32)
+    a1 = rng.uniform(0, 360, n)
+    a2 = np.mod(a1 + np.r_[20.0 + rng.normal(0, 5, n_true), rng.uniform(0, 360, n - n_true)], 360.0)
+    resp = rng.uniform(0.01, 0.1, n).astype(np.float32)
+    perm = rng.permutation(n)  # image-2 feature k is partner perm[k]
+    f1 = Features.from_arrays(x1, d1, size, angles=a1.astype(np.float32), responses=resp)
+    f2 = Features.from_arrays(x2[perm], d2[perm], size, angles=a2[perm].astype(np.float32), responses=resp[perm])
+    true_j = np.argsort(perm)[:n_true]  # image-2 index of true partner i (i < n_true)
+    return f1, f2, true_j
+
+
+def test_frame_hypotheses_recover_a_low_inlier_ratio_pair(monkeypatch):
+    """frame_hypotheses: the verdict's second search (orientation-consistent subset, geometry step 4) verifies the
+    12 %-correct evidence that RANSAC alone calls "no-overlap", and the first guiding F must pass the verdict's rule
+    (else the verdict's F guides). Each half is necessary: without the rule the pair returns nothing; with the
+    search but a first F fitted on all the evidence, it follows a wrong F."""
+    from guidedmatch.matcher import _GuidedRun
+
+    f1, f2, true_j = _low_ratio_features()
+    n_true = len(true_j)
+
+    def correct(r):
+        q, j = r.pairs[:, 0], r.pairs[:, 1]
+        return int(((q < n_true) & (j == true_j[np.minimum(q, n_true - 1)])).sum())
+
+    bf = match(f1, f2, "bf")
+    assert len(bf) > 3000 and correct(bf) == n_true  # 12 % of brute force's matches are right
+    off = match(f1, f2, "so+epi+ia", MatcherConfig(frame_hypotheses=False))
+    assert off.geometry.verdict == "no-overlap" and len(off) == 0  # the failure
+    on = match(f1, f2, "so+epi+ia")
+    assert on.geometry.verdict == "verified" and on.geometry.model == "F"
+    assert any(c["verdict"] == "verified" for c in on.stats.details["verdict_checks"])
+    assert correct(on) >= 0.9 * n_true and correct(on) >= 0.8 * len(on)  # BF: 12 % precision
+    assert on.stats.comparisons < 0.1 * len(f1) * len(f2)
+    # without the first-F check the guided phase follows an F fitted on 12 %-correct evidence
+    first_fit = [f for f in on.stats.fallbacks if f.what == "fundamental" and "first F" in f.reason]
+    assert len(first_fit) == 1 and first_fit[0].at_update == 0
+    monkeypatch.setattr(_GuidedRun, "verified_first_F", lambda self, fr, verdict, p1, p2: fr)
+    unchecked = match(f1, f2, "so+epi+ia")
+    assert correct(unchecked) < 0.5 * correct(on)

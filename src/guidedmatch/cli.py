@@ -415,6 +415,8 @@ def _common(p: argparse.ArgumentParser, modes) -> None:
                             "in-process for small jobs, else one per core)")
     where.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="address of a running Dask scheduler (tcp://host:8786); workers need the files")
+    p.add_argument("--threads", type=_positive_int, default=None, metavar="N",
+                   help="in-process runs: pairs matched at once on N threads (default: one per core)")
     p.add_argument("--retries", type=_nonneg_int, default=1, help="retries of a failed pair (default 1)")
     p.add_argument("--log", default=None, metavar="PATH",
                    help="per-pair JSON lines + a summary line (default: next to the output, .guidedmatch.jsonl; "
@@ -454,8 +456,11 @@ def _collection_config(args, log_default: Path):
     from .collection.engine import CollectionConfig
 
     log = args.log if args.log is not None else str(log_default)
+    if args.threads is not None and (args.workers or args.scheduler):
+        raise ConfigError("--threads is for in-process runs; with --workers N / --scheduler each worker runs one pair "
+                          "at a time")
     return CollectionConfig(mode=args.mode, matcher=matcher_config(args.config), workers=args.workers,
-                            scheduler=args.scheduler, retries=args.retries, progress=not args.no_progress,
+                            threads=args.threads, scheduler=args.scheduler, retries=args.retries, progress=not args.no_progress,
                             log_path=None if str(log).lower() == "none" else log)
 
 

@@ -119,6 +119,10 @@ class MatcherConfig:
                                          # multiple of max(random-inlier bound, 15); a weaker verified pair is matched
                                          # unguided within max_unguided (0001-0007 at 8192: a weak F guided 234 wrong
                                          # matches into its band, BF+ratio returns 163)
+    frame_hypotheses: bool = True        # verdicts: when RANSAC on all the evidence verifies nothing, fit one more F
+                                         # on the matches whose detector orientations turned alike (geometry step 4;
+                                         # Herz-Jesus 0000-0006 at ~40k: 9.6 % -> 27 % correct, no-overlap -> verified);
+                                         # the first guiding F must then pass the verdict's rule too (matcher step 3)
     verdict_iters: int = 1000            # RANSAC iterations of each verdict check: on 8192 SIFT, 33 pairs x 4 evidence
                                          # sizes, the same verdict as 10000 in 129 of 132 cases (the 3 others: weak wide
                                          # pairs at full evidence), 3x cheaper; a weak verified check is redone at 10000
@@ -171,6 +175,7 @@ class MatcherConfig:
         check_choice(o, "start", self.start, ("verified", "paper"))
         check_number(o, "first_check", self.first_check, lo=8, integer=True)
         check_number(o, "check_growth", self.check_growth, lo=1, lo_open=True, hi=16)
+        check_bool(o, "frame_hypotheses", self.frame_hypotheses)
         check_number(o, "verdict_iters", self.verdict_iters, lo=1, integer=True)
         check_number(o, "guide_margin", self.guide_margin, lo=1, hi=100)
         check_number(o, "max_unguided", self.max_unguided, lo=0, lo_open=True, hi=1, allow_none=True)

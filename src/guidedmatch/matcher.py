@@ -32,16 +32,19 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    model selected them. After ``first_check`` (32) of them, and whenever they have grown by ``check_growth``,
    :func:`~guidedmatch.geometry.two_view_geometry` decides whether they share a geometry beyond chance; the first
    model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
-   evidence never guides. When the start has spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus
-   the exact rent without a verified verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining
-   features are not matched (fallback ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first
-   model after ``update_every`` exact unguided correspondences, no gate, no exit.
-3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit, then after every ``update_every`` (200)
-   newly accepted correspondences the models are refit on *all* correspondences so far (``num_updates`` = 3 fits
-   in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA, §III-E; validated over the
-   keypoints by :func:`~guidedmatch.alignment.safe_alignment` -- local scale, orientation, line at infinity -- with
-   the fallback requested approach -> ``c_inplane`` -> none, each rejection reported), then the spatial-order model
-   on aligned x-coordinates (§III-B, §III-C).
+   evidence never guides. With ``frame_hypotheses`` the verdict also searches the orientation-consistent subset of
+   the evidence when RANSAC on all of it verifies nothing (low inlier ratio, geometry step 4). When the start has
+   spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus the exact rent without a verified
+   verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are not matched (fallback
+   ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after ``update_every`` exact
+   unguided correspondences, no gate, no exit.
+3. **Model fit** (§III-B..E, :meth:`_GuidedRun.fit_models`): the first fit (with ``frame_hypotheses`` its F must pass
+   the verdict's rule on the evidence, else the verdict's F guides, :meth:`_GuidedRun.fit_fundamental`), then after
+   every ``update_every`` (200) newly accepted correspondences the models are refit on *all* correspondences so far
+   (``num_updates`` = 3 fits in all): F by robust RANSAC (§III-D), the alignment homographies from F (mode IA,
+   §III-E; validated over the keypoints by :func:`~guidedmatch.alignment.safe_alignment` -- local scale,
+   orientation, line at infinity -- with the fallback requested approach -> ``c_inplane`` -> none, each rejection
+   reported), then the spatial-order model on aligned x-coordinates (§III-B, §III-C).
 4. **Guided phase**: between updates, batches are matched in their search regions under the current models; the
    batch size follows the observed acceptance rate so the next update comes after about one batch.
 5. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized call of the
@@ -149,6 +152,14 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     return (res, run.guidance if run is not None else None) if return_models else res
 
 
+def _frames(c: MatcherConfig, f1, f2, q: np.ndarray, j: np.ndarray):
+    """``(angles1[q], angles2[j])`` for the verdict's second search (``frame_hypotheses``), or None when off or
+    either image has no detector orientations."""
+    if not c.frame_hypotheses or f1.angles is None or f2.angles is None:
+        return None
+    return np.asarray(f1.angles)[q], np.asarray(f2.angles)[j]
+
+
 def _bf_wins(c: MatcherConfig, n1: int, n2: int, binary: bool) -> str | None:
     """Why brute force replaces a guided mode (``auto_bf``), or None.
 
@@ -187,7 +198,8 @@ def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary, mode: Mode, auto_reason:
         pairs, dist = pairs[sel], dist[sel]
     t1 = time.perf_counter()
     geometry = two_view_geometry(f1.keypoints[pairs[:, 0]], f2.keypoints[pairs[:, 1]], f1.image_size,
-                                 f2.image_size, VerdictConfig(seed=c.seed))
+                                 f2.image_size, VerdictConfig(seed=c.seed),
+                                 frames=_frames(c, f1, f2, pairs[:, 0], pairs[:, 1]))
     n1, n2 = len(d1), len(d2)
     details = dict(res.stats.details, verdict_s=time.perf_counter() - t1)
     flags = default_flags(len(pairs))
@@ -576,8 +588,9 @@ class _GuidedRun:
                         g = self.decide(got, 10000)  # weak at the quick check: the full-strength fit decides
                     if self.strong(g):
                         # the first model is fitted anew (ransac_method, 10000 iterations): the verdict's quick F is only a
-                        # gate (reusing a quick PROSAC F lost 20-70 % of the true matches on 0000-0003 / 0002-0006)
-                        models = self.fit_models(*got.pairs_so_far())
+                        # gate (reusing a quick PROSAC F lost 20-70 % of the true matches on 0000-0003 / 0002-0006),
+                        # but it must pass the verdict's rule (frame_hypotheses, fit_fundamental)
+                        models = self.fit_models(*got.pairs_so_far(), verdict=g)
                         break
                     next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
                 if self.unguided_comparisons >= budget and ptr < len(order):
@@ -627,7 +640,7 @@ class _GuidedRun:
         prior = self.decision.F if self.decision is not None and self.decision.model == "F" else None
         g = two_view_geometry(self.f1.keypoints[q], self.f2.keypoints[j], self.f1.image_size, self.f2.image_size,
                               VerdictConfig(seed=self.c.seed, max_iters=max_iters or self.c.verdict_iters),
-                              F_prior=prior)
+                              F_prior=prior, frames=_frames(self.c, self.f1, self.f2, q, j))
         self.decision = g
         self.checks.append(dict(evidence=int(len(q)), verdict=g.verdict, model=g.model, strong=self.strong(g),
                                 iterations=int(max_iters or self.c.verdict_iters),
@@ -677,13 +690,14 @@ class _GuidedRun:
         return _Accepted(queries[keep], i1[keep], dist1[keep].astype(np.float32), single[keep])
 
     # ------------------------------------------------------------------------------------------ step 3: models
-    def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray) -> GuidanceModels:
-        """Step 3 (§III-B..E): refit F, the alignment and the spatial-order model on all correspondences so far."""
+    def fit_models(self, acc_i: np.ndarray, acc_j: np.ndarray, verdict=None) -> GuidanceModels:
+        """Step 3 (§III-B..E): refit F, the alignment and the spatial-order model on all correspondences so far
+        (``verdict``: the first fit's verified decision on the same correspondences, see :meth:`fit_fundamental`)."""
         t0 = time.perf_counter()
         self.last_alignment = None
         k1, k2 = self.f1.keypoints, self.f2.keypoints
         p1, p2 = k1[acc_i], k2[acc_j]
-        fr = self.fit_fundamental(p1, p2) if (self.mode.use_epi or self.mode.use_ia) else None
+        fr = self.fit_fundamental(p1, p2, verdict) if (self.mode.use_epi or self.mode.use_ia) else None
         F, inl = (fr.F, np.asarray(fr.inliers, bool)) if fr is not None else (None, None)
         al = self.fit_alignment(F, p1[inl], p2[inl]) if self.mode.use_ia and F is not None else None
         H1, H2 = (np.asarray(al.H1, float), np.asarray(al.H2, float)) if al is not None else (np.eye(3), np.eye(3))
@@ -717,18 +731,56 @@ class _GuidedRun:
         return GuidanceModels(F, F_aligned, x1_range, H1, H2, so, pts1a, pts2a, float(self.c.band_px),
                               self.c.outside_window)
 
-    def fit_fundamental(self, p1, p2):
+    def fit_fundamental(self, p1, p2, verdict=None):
         """§III-D: F by OpenCV USAC (``ransac_method``): the :class:`~guidedmatch.epipolar.FundamentalResult`, or
-        None when it fails (reported)."""
+        None when it fails (reported).
+
+        ``verdict`` (the first fit, ``frame_hypotheses``): the verified "F" decision on these same correspondences.
+        The fresh F must pass the verdict's own rule on them (independent inliers >= ``min_inliers`` and above the
+        random bound, :func:`~guidedmatch.geometry.fundamental_support`); at a low inlier ratio RANSAC on all of
+        them fails where the verdict's second search succeeded (geometry step 4), and the fresh F would guide
+        wrong matches into its band (Herz-Jesus 0000-0006 at ~40k: 72 of 1010 correct). Then F is refitted on the
+        verdict F's inliers (kept if it explains at least as much; else the verdict's F), reported as a fallback.
+        (When the fit fails outright, that failure is reported as before.)"""
         from . import epipolar
 
         c = self.c
         fr = epipolar.estimate_fundamental(p1, p2, method=c.ransac_method, threshold=c.ransac_threshold, seed=c.seed)
+        if fr and verdict is not None and c.frame_hypotheses and verdict.model == "F" and verdict.F is not None:
+            fr = self.verified_first_F(fr, verdict, p1, p2)
         if fr:
             return fr
         self.fallback("fundamental", f"F estimation failed: {fr.reason}; "
                       + ("spatial order only" if self.mode.use_so else "no epipolar guidance"))
         return None
+
+    def verified_first_F(self, fr, verdict, p1, p2):
+        """:meth:`fit_fundamental`'s check of the first F against the verified ``verdict`` on ``p1 <-> p2``."""
+        from . import epipolar
+        from .geometry import VerdictConfig, fundamental_support
+
+        c = self.c
+        vc = VerdictConfig(seed=c.seed)
+        sizes = (self.f1.image_size, self.f2.image_size)
+        bound = float(verdict.evidence.get("random_bound_F", 0.0))
+        passes = lambda n: n >= vc.min_inliers and n > bound  # noqa: E731 - the verdict's rule (geometry step 3)
+        n_fresh = fundamental_support(fr.F, p1, p2, *sizes, vc)
+        if passes(n_fresh):
+            return fr
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inl = epipolar.sampson_distance(np.asarray(verdict.F, np.float64), p1, p2) <= vc.threshold_px
+        F, n_v = np.asarray(verdict.F, np.float64), fundamental_support(verdict.F, p1, p2, *sizes, vc)
+        refit = epipolar.estimate_fundamental(p1[inl], p2[inl], method=c.ransac_method, threshold=c.ransac_threshold,
+                                              seed=c.seed)
+        used = "the verdict's F"
+        if refit and fundamental_support(refit.F, p1, p2, *sizes, vc) >= n_v:
+            F, used = refit.F, f"F refitted on the verdict F's {int(inl.sum())} inliers"
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mask = epipolar.sampson_distance(F, p1, p2) <= c.ransac_threshold
+        self.fallback("fundamental", f"first F fitted on all {len(p1)} correspondences has {n_fresh} independent "
+                      f"inliers (the verdict's F {n_v}, random bound {bound:.0f}): {used} guides")
+        return epipolar.FundamentalResult(F, mask, int(mask.sum()), c.ransac_method, float(c.ransac_threshold),
+                                          dict(from_verdict=True, fresh_support=int(n_fresh), verdict_support=int(n_v)))
 
     def fit_alignment(self, F, p1_in, p2_in):
         """§III-E: the alignment (``H1``, ``H2``, Bougnoux focal, roll) from F and its inliers for the ``alignment``

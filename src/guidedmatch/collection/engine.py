@@ -13,13 +13,18 @@ Where the pairs run (``CollectionConfig.workers`` / ``scheduler`` / the ``client
 * ``workers=N`` (N >= 1): a :class:`distributed.LocalCluster` of N single-threaded worker processes
   (``threads_per_worker=1, processes=True``; NumPy / Numba / OpenCV limited to one thread each), started and
   stopped by the call.
-* ``workers=0``: in this process (the matcher uses this process's threads).
-* ``workers=None`` (default, "auto"): in this process when the job is small, else a local cluster with one worker
-  per usable core. **Rule**: the job is small when its work ``W = sum over the pairs to do of (n1 + n2)``
-  (features of both images) is at most ``inprocess_max_work`` (default 1,000,000 -- about 60 pairs of 8192
-  features, ~15 s of matching), or when fewer than 2 cores are usable. Starting and stopping a local cluster of 2
-  processes costs ~4-5 s on the 2-core development machine (start 2.7 s, importing guidedmatch in the workers
-  0.9 s, stop 1.1 s), which only pays off above roughly that much work.
+* ``workers=0``: in this process, ``threads`` pairs at once (default one per usable core) on a thread pool; each
+  pair's Numba kernels and faiss run single-threaded, the pairs share the loaded images (one copy, one cache).
+* ``workers=None`` (default, "auto"): in this process when the job is not huge, else a local cluster with one worker
+  per usable core. **Rule**: in-process when the work ``W = sum over the pairs to do of (n1 + n2)`` (features of
+  both images) is at most ``inprocess_max_work`` (default 20,000,000 -- about 1,200 pairs of 8192 features), or
+  when fewer than 2 cores are usable. Measured on the 2-core development machine (Herz-Jesus-P8, 28 pairs, one
+  run each, `guidedmatch colmap DB --pairs exhaustive`): at 68k features per image (W = 3.8 M) 2 threads in-process
+  took 11.1 s, a local cluster of 2 worker processes 17.7 s (its start / stop ~2 s, and the two processes' pairs
+  ran slower side by side than two threads sharing one copy of the images: 25.3 s vs 19.4 s of matching summed
+  over pairs); at 11.4k (W = 0.64 M) 2 threads 2.5 s vs 3.0 s for one thread. Above the threshold the run is
+  long enough to pay the cluster's start-up for its isolation (a pair that crashes its process costs a worker,
+  not the run).
 
 Scheduling (locality)
 ---------------------
@@ -65,6 +70,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import importlib.util
 import json
 import logging
 import os
@@ -87,7 +93,7 @@ __all__ = ["CollectionConfig", "CollectionReport", "PairOutcome", "match_collect
            "INPROCESS_RULE"]
 
 #: the auto rule, as reported in ``CollectionReport.totals["backend_rule"]``
-INPROCESS_RULE = "in-process when sum over pairs of (n1 + n2) <= inprocess_max_work or < 2 usable cores"
+INPROCESS_RULE = "in-process (threads) when sum over pairs of (n1 + n2) <= inprocess_max_work or < 2 usable cores"
 
 #: environment of the worker processes of a local cluster: one thread per process for every library
 _SINGLE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -105,6 +111,7 @@ class CollectionConfig:
     mode: str = "so+epi+ia"                    # matcher mode for every pair (guidedmatch.matcher.MODES)
     matcher: MatcherConfig = field(default_factory=MatcherConfig)   # matcher settings (a dict of fields works too)
     workers: int | None = None                 # None: auto (module doc); 0: in-process; N: local cluster of N processes
+    threads: int | None = None                 # in-process: pairs matched at once by this many threads (None: 1 per core)
     scheduler: str | None = None               # address of a running Dask scheduler, e.g. "tcp://10.0.0.1:8786"
     retries: int = 1                           # extra attempts of a failed pair before it is reported failed
     progress: bool = True                      # tqdm progress bar (pairs/s, ETA) on stderr
@@ -112,7 +119,7 @@ class CollectionConfig:
     chunk_pairs: int = 16                      # pairs per task; a task's pairs share one anchor image
     tasks_per_worker: int = 2                  # tasks in flight per worker (one running, one queued): bounds memory
     cache_mb: float = 1024.0                   # per worker process: LRU bound on cached images, MB (module doc)
-    inprocess_max_work: int = 1_000_000        # auto: in-process when sum over pairs of (n1 + n2) is at most this
+    inprocess_max_work: int = 20_000_000       # auto: in-process when sum over pairs of (n1 + n2) is at most this
     report_max_pairs: int = 100_000            # per-pair dicts kept in the report (the log gets all of them)
 
     def __post_init__(self) -> None:
@@ -120,6 +127,7 @@ class CollectionConfig:
         check_choice(own, "mode", self.mode, MODES)
         object.__setattr__(self, "matcher", config_from(MatcherConfig, self.matcher))
         check_number(own, "workers", self.workers, lo=0, integer=True, allow_none=True)
+        check_number(own, "threads", self.threads, lo=1, integer=True, allow_none=True)
         if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
             raise ConfigError(f"{own}.scheduler must be an address like 'tcp://host:8786' or None; "
                               f"got {self.scheduler!r}")
@@ -174,7 +182,7 @@ class CollectionReport:
         t = self.totals
         lines = [f"pairs      : {t.get('pairs', 0)} ({self.done} matched, {self.skipped} skipped as already done, "
                  f"{len(self.failed)} failed)",
-                 f"backend    : {t.get('backend')} ({t.get('workers')} worker(s)); {t.get('backend_reason')}",
+                 f"backend    : {t.get('backend')} ({_workers_text(t)}); {t.get('backend_reason')}",
                  f"matches    : {t.get('matches', 0)}; verified pairs {t.get('verified_pairs', 0)} of {self.done}, "
                  f"inlier matches {t.get('inliers', 0)}",
                  f"time       : {self.wall_s:.2f} s wall ({t.get('pairs_per_s', 0.0):.2f} pairs/s matched), "
@@ -307,6 +315,36 @@ def _forget_run(run_id: str) -> bool:
         with contextlib.suppress(Exception):
             cache.source.close()
     return cache is not None
+
+
+_THREAD_STATE = threading.local()
+
+
+def _workers_text(t: dict) -> str:
+    if t.get("backend") == "in-process":
+        n = t.get("threads", 1)
+        return f"{n} thread{'s' if n != 1 else ''}"
+    return f"{t.get('workers')} worker(s)"
+
+
+class _single_thread_faiss:
+    """faiss's OpenMP team set to one thread inside the block (pairs run concurrently on a thread pool: the
+    concurrency is across pairs; nested save/restore of the thread count by concurrent threads would race)."""
+
+    def __enter__(self):
+        self.old = None
+        if "faiss" in sys.modules or importlib.util.find_spec("faiss") is not None:
+            import faiss
+
+            self.old = faiss.omp_get_max_threads()
+            faiss.omp_set_num_threads(1)
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            import faiss
+
+            faiss.omp_set_num_threads(self.old)
 
 
 def _limit_threads() -> None:
@@ -525,6 +563,18 @@ def _usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def _chunk_size(chunk_pairs: int, pairs: int, workers: int | None) -> int:
+    """Pairs per task: ``chunk_pairs``, cut so that each of ``workers`` known workers gets >= 4 tasks (a short
+    run split into a few big tasks leaves a worker idle at the end: 28 pairs in tasks of 16 ran 16 / 12 on 2 workers).
+
+    >>> _chunk_size(16, 28, 2), _chunk_size(16, 10_000, 2), _chunk_size(16, 28, None)
+    (4, 16, 16)
+    """
+    if not workers:
+        return chunk_pairs
+    return max(1, min(chunk_pairs, -(-pairs // (4 * workers))))
+
+
 def _choose_backend(cfg: CollectionConfig, client, work: int) -> tuple[str, int | None, str]:
     """``(backend, n_workers, reason)`` with backend in-process | local-cluster | scheduler | client."""
     if client is not None:
@@ -545,16 +595,64 @@ def _choose_backend(cfg: CollectionConfig, client, work: int) -> tuple[str, int 
                                     f"one single-threaded worker per usable core ({cores})")
 
 
-def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer) -> dict:
+def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, threads: int = 1) -> dict:
+    """The pairs in this process: one after the other (``threads=1``), or ``threads`` pairs at once on a thread pool
+    (each pool thread runs Numba's kernels single-threaded, faiss runs single-threaded for the run; the image cache
+    and the prepared images' index builds are locked). The caller's thread is the one writer either way, results
+    are written in completion order, and the matches are the same as one after the other."""
     cache = _ImageCache(source, spec)
-    while queue:
-        anchor, task = queue.take()
-        outs = [_match_one(cache, a, b, spec, "in-process") for a, b in task]
-        queue.finished(anchor)
-        for out in outs:
-            writer.handle(out)
+    if threads <= 1:
+        while queue:
+            anchor, task = queue.take()
+            outs = [_match_one(cache, a, b, spec, "in-process") for a, b in task]
+            queue.finished(anchor)
+            for out in outs:
+                writer.handle(out)
+        hits, loads, load_s = cache.counters()
+        return dict(cache_hits=hits, image_loads=loads, workers=1, threads=1)
+
+    import concurrent.futures as cf
+
+    def one(a: str, b: str) -> PairOutcome:
+        if getattr(_THREAD_STATE, "numba_threads", None) != 1:
+            with contextlib.suppress(Exception):
+                import numba
+
+                numba.set_num_threads(1)  # thread-local: this pool thread only
+            _THREAD_STATE.numba_threads = 1
+        return _match_one(cache, a, b, spec, "in-process")
+
+    pending: collections.deque = collections.deque()  # (anchor, remaining pairs of its task)
+    inflight: dict = {}
+    with _single_thread_faiss(), cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
+        def fill() -> None:
+            while len(inflight) < 2 * threads:
+                if not pending:
+                    if not queue:
+                        return
+                    anchor, task = queue.take()
+                    pending.append([anchor, collections.deque(task), len(task)])  # anchor, to submit, unfinished
+                entry = pending[0]
+                a, b = entry[1].popleft()
+                if not entry[1]:
+                    pending.popleft()
+                inflight[pool.submit(one, a, b)] = (entry, a, b)
+
+        fill()
+        while inflight:
+            finished, _ = cf.wait(list(inflight), return_when=cf.FIRST_COMPLETED)
+            for fut in finished:
+                entry, a, b = inflight.pop(fut)
+                exc = fut.exception()
+                out = fut.result() if exc is None else PairOutcome(
+                    a, b, False, f"{type(exc).__name__}: {exc}", stats=dict(worker="in-process"))
+                entry[2] -= 1
+                if entry[2] == 0:  # the task's last pair
+                    queue.finished(entry[0])
+                writer.handle(out)
+            fill()
     hits, loads, load_s = cache.counters()
-    return dict(cache_hits=hits, image_loads=loads, workers=1)
+    return dict(cache_hits=hits, image_loads=loads, workers=1, threads=threads)
 
 
 def _start_local_cluster(n: int):
@@ -750,7 +848,8 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
         except Exception as exc:  # noqa: BLE001 - checked before any cluster starts
             raise InputError(f"the feature source cannot be sent to worker processes (not picklable: {exc}); "
                              f"use workers=0") from None
-    queue = _Queue(plan_tasks(todo, names, cfg.chunk_pairs), cfg.tasks_per_worker)
+    chunk = _chunk_size(cfg.chunk_pairs, len(todo), n_workers if backend == "local-cluster" else None)
+    queue = _Queue(plan_tasks(todo, names, chunk), cfg.tasks_per_worker)
     from tqdm.auto import tqdm
 
     startup_s = shutdown_s = 0.0
@@ -779,7 +878,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             bar.set_postfix_str(backend, refresh=False)
         writer = _Writer(sink, cfg, queue, bar, log)
         if backend == "in-process":
-            facts = _run_inprocess(source, spec, queue, writer)
+            facts = _run_inprocess(source, spec, queue, writer, threads=cfg.threads or _usable_cores())
         elif backend == "none":
             facts = dict(cache_hits=0, image_loads=0, workers=0)
         else:
@@ -803,12 +902,13 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     s = writer.sums
     totals = dict(pairs=len(todo_all), dropped=dropped, work=work, backend=backend,
                   backend_reason=reason, backend_rule=INPROCESS_RULE, inprocess_max_work=cfg.inprocess_max_work,
-                  workers=facts["workers"], mode=cfg.mode, matches=int(s["matches"]), inliers=int(s["inliers"]),
+                  workers=facts["workers"], threads=facts.get("threads", 1), mode=cfg.mode,
+                  matches=int(s["matches"]), inliers=int(s["inliers"]),
                   verified_pairs=int(s["verified_pairs"]), verdicts=dict(writer.verdicts),
                   load_s=float(s["load_s"]),
                   match_s=float(s["match_s"]), cache_hits=facts["cache_hits"],
                   image_loads=facts["image_loads"], images=len(nfeat), startup_s=startup_s, shutdown_s=shutdown_s,
-                  pairs_per_s=writer.done / wall if wall > 0 else 0.0, chunk_pairs=cfg.chunk_pairs,
+                  pairs_per_s=writer.done / wall if wall > 0 else 0.0, chunk_pairs=chunk,
                   max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process" else 1,
                   cache_mb=cfg.cache_mb, prepared=_prepare_fn() is not None,
                   retried=sum(1 for k, v in writer.attempts.items() if v > 1))

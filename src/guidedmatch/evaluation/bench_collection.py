@@ -2,13 +2,15 @@
 
 ``python -m guidedmatch.evaluation.bench_collection [--out benchmarks/results/collection] [--work DIR]``
 
-On Herz-Jesus-P8 (8 images, 3072x2048, 28 pairs), for each feature set:
+On Herz-Jesus-P8 (8 images, 3072x2048, 28 pairs), for each feature set -- and on ``mixed``: the same 8 images plus
+8 unrelated Unsplash photos (16 images, 120 pairs, 92 of them without overlap, the common case of a real collection):
 
-1. one COLMAP database with ``pycolmap.extract_features`` (SIFT, CPU, 2 threads; ``default``: COLMAP's defaults,
-   8192 features; ``50k``: ``peak_threshold=0.002``, ``max_num_features=60000``), copied for every run below;
+1. one COLMAP database with ``pycolmap.extract_features`` (SIFT, CPU, 2 threads; ``default`` and ``mixed``: COLMAP's
+   defaults, 8192 features; ``50k``: ``peak_threshold=0.002``, ``max_num_features=60000``), copied for every run;
 2. as fresh processes (Python start-up and imports included in the wall time):
    * ``guidedmatch colmap DB --pairs exhaustive`` (auto backend: the in-process / local-cluster rule), and with
-     ``--workers 1`` / ``--workers 2`` (the 1 vs 2 local workers scaling) and ``--workers 0`` (in-process);
+     ``--workers 1`` / ``--workers 2`` (the 1 vs 2 local workers scaling) and ``--workers 0`` (in-process, one thread
+     per core) / ``--workers 0 --threads 1``;
    * ``pycolmap.match_exhaustive`` on a copy (CPU, ``num_threads=2``, COLMAP's matching and verification
      defaults);
    * the rerun of our command on the finished database (every pair skipped);
@@ -33,8 +35,27 @@ DATA_REL = "pose_pairs/strecha/Herz-Jesus-P8/images"
 FEATURE_SETS = {
     "default": dict(),  # COLMAP's defaults: max_num_features 8192, peak_threshold 0.00667
     "50k": dict(peak_threshold=0.002, max_num_features=60000),
+    "mixed": dict(),    # COLMAP's defaults on Herz-Jesus-P8 + MIXED_PHOTOS unrelated photos: most pairs do not overlap
 }
+#: unrelated photos added to the 8 Herz-Jesus-P8 images in the "mixed" set (the first of photos/unsplash, by name)
+MIXED_PHOTOS = 8
+
+
+def mixed_images(image_dir: Path, data_root: Path, work: Path) -> Path:
+    """A folder of symbolic links (the data stays in place): the Herz-Jesus-P8 images and the first
+    :data:`MIXED_PHOTOS` Unsplash photos -- 16 images, 120 pairs of which 92 do not overlap."""
+    from ..datasets import list_photos
+
+    d = work / "mixed-images"
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    for src in sorted(image_dir.iterdir()) + list_photos(data_root)[:MIXED_PHOTOS]:
+        (d / src.name).symlink_to(src.resolve())
+    return d
 THREADS = 2
+#: the backend runs of the scaling part: tag -> options of ``guidedmatch colmap``
+WORKER_RUNS = {"0": "--workers 0", "0t1": "--workers 0 --threads 1", "1": "--workers 1", "2": "--workers 2"}
 SRC = str(Path(__file__).resolve().parents[2])
 
 
@@ -56,11 +77,17 @@ def _timed(cmd: list[str], log: Path | None = None) -> dict:
         summary = json.loads(lines[-1]) if lines else {}
         out["summary"] = {k: summary.get(k) for k in ("done", "skipped", "failed", "wall_s", "backend", "workers",
                                                       "backend_reason", "matches", "inliers", "verified_pairs",
-                                                      "match_s", "load_s", "startup_s", "shutdown_s",
+                                                      "match_s", "load_s", "startup_s", "shutdown_s", "threads",
                                                       "image_loads", "cache_hits", "work")}
     if r.returncode != 0:
         raise RuntimeError(f"{out['cmd']} failed ({r.returncode}): {r.stderr.strip()[-2000:]}")
     return out
+
+
+def _backend(s: dict) -> str:
+    if s.get("backend") == "in-process":
+        return f"in-process ({s.get('threads', 1)} thread{'s' if s.get('threads', 1) != 1 else ''})"
+    return f"{s.get('backend')} ({s.get('workers')})"
 
 
 def extract(image_dir: Path, db: Path, options: dict) -> dict:
@@ -145,26 +172,32 @@ print(len(recs), 0 if best is None else best.num_reg_images(), time.perf_counter
 
 
 def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling: bool = True, note: str = "",
-        map_colmap_sets=("default",)) -> dict:
+        map_colmap_sets=("default", "mixed"), reuse: bool = False, data_root: Path | None = None) -> dict:
     from .meta import run_metadata, write_json
 
     if not image_dir.is_dir():
         raise FileNotFoundError(f"Herz-Jesus-P8 images not found: {image_dir}")
     work.mkdir(parents=True, exist_ok=True)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     result = dict(meta=run_metadata(), threads=THREADS, images=str(image_dir), sets={}, run_note=note,
-                  note="machine shared with other jobs while running: wall times are noisy")
+                  note=f"load average {load:.1f} when the run started (2 cores): wall times are noisy when it is > 1")
     old = out_dir / "collection.json"
     if old.exists():  # keep the sets of an earlier run that this one does not redo
         with open(old) as fh:
             result["sets"] = {k: v for k, v in json.load(fh).get("sets", {}).items() if k not in sets}
+    herz = image_dir
     for name in sets:
         map_colmap = name in map_colmap_sets
+        image_dir = mixed_images(herz, data_root, work) if name == "mixed" else herz
         print(f"== {name}: extracting", flush=True)
         base = work / f"{name}.db"
-        if base.exists():
-            base.unlink()
         row = dict(extraction_options=FEATURE_SETS[name])
-        row["extract"] = extract(image_dir, base, FEATURE_SETS[name])
+        if reuse and base.exists():  # the features of an earlier run of this bench (same options), not re-extracted
+            row["extract"] = dict(reused=str(base))
+        else:
+            if base.exists():
+                base.unlink()
+            row["extract"] = extract(image_dir, base, FEATURE_SETS[name])
         row["features"] = db_stats(base)
 
         def copy(tag: str) -> Path:
@@ -194,14 +227,15 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
             row["mapping_colmap"] = mapping(cdb, image_dir, work / f"{name}-sparse-colmap")
         if scaling:
             s = row["ours"]["summary"]
-            auto = "0" if s["backend"] == "in-process" else str(s["workers"])
-            for w in ("0", "1", "2"):
+            auto = "0" if s["backend"] == "in-process" and s.get("threads", 1) > 1 else (
+                "0t1" if s["backend"] == "in-process" else str(s["workers"]))
+            for w in WORKER_RUNS:
                 if w == auto:  # the auto run was this configuration: not run twice
                     row[f"workers_{w}"] = dict(row["ours"], same_as="auto")
                     continue
-                print(f"== {name}: --workers {w}", flush=True)
+                print(f"== {name}: {WORKER_RUNS[w]}", flush=True)
                 wdb = copy(f"w{w}")
-                row[f"workers_{w}"] = ours(wdb, work / f"{name}-w{w}.jsonl", "--workers", w)
+                row[f"workers_{w}"] = ours(wdb, work / f"{name}-w{w}.jsonl", *WORKER_RUNS[w].split())
                 row[f"workers_{w}"]["db"] = db_stats(wdb)
         c, o = row["colmap"], row["ours"]
         row["ratios"] = dict(
@@ -209,7 +243,8 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
             inliers_ours_over_colmap=o["db"]["verified_inliers"] / max(1, c["db"]["verified_inliers"]),
             workers_2_over_1=(row["workers_2"]["wall_s"] / row["workers_1"]["wall_s"]) if scaling else None,
             workers_2_over_1_matching=(row["workers_2"]["summary"]["wall_s"] / row["workers_1"]["summary"]["wall_s"])
-            if scaling else None)
+            if scaling else None,
+            threads_2_over_1=(row["workers_0"]["wall_s"] / row["workers_0t1"]["wall_s"]) if scaling else None)
         result["sets"][name] = row
         write_json(out_dir / "collection.json", result)
     (out_dir / "collection.md").write_text(markdown(result))
@@ -231,30 +266,32 @@ def markdown(result: dict) -> str:
         f = row["features"]
         feat = f"{name} ({f['features_mean']:.0f}/image)"
         c, o = row["colmap"], row["ours"]
-        reg_c = f"{row['mapping_colmap']['registered']}/8" if "mapping_colmap" in row else "not run"
+        nimg = f.get("images", 8)
+        reg_c = f"{row['mapping_colmap']['registered']}/{nimg}" if "mapping_colmap" in row else "not run"
         lines.append(f"| {feat} | COLMAP match_exhaustive | {c['wall_s']:.2f} | {c['inner_s']:.2f} | 2 threads | "
                      f"{c['db']['verified_pairs']} | {c['db']['verified_inliers']} | {reg_c} |")
         s = o.get("summary", {})
         lines.append(f"| {feat} | guidedmatch colmap (auto) | {o['wall_s']:.2f} | {s.get('wall_s', 0):.2f} | "
-                     f"{s.get('backend')} ({s.get('workers')}) | {o['db']['verified_pairs']} | "
-                     f"{o['db']['verified_inliers']} | {row['mapping_ours']['registered']}/8 |")
+                     f"{_backend(s)} | {o['db']['verified_pairs']} | "
+                     f"{o['db']['verified_inliers']} | {row['mapping_ours']['registered']}/{nimg} |")
         r = row["rerun"]
         lines.append(f"| {feat} | rerun (all skipped: {r['summary'].get('skipped')}) | {r['wall_s']:.2f} | "
                      f"{r['summary'].get('wall_s', 0):.2f} | - | - | - | - |")
-        for w in ("0", "1", "2"):
+        for w in WORKER_RUNS:
             if f"workers_{w}" in row:
                 x = row[f"workers_{w}"]
                 same = " (= the auto run)" if x.get("same_as") else ""
-                lines.append(f"| {feat} | guidedmatch colmap --workers {w}{same} | {x['wall_s']:.2f} | "
-                             f"{x['summary'].get('wall_s', 0):.2f} | {x['summary'].get('backend')} | "
+                lines.append(f"| {feat} | guidedmatch colmap {WORKER_RUNS[w]}{same} | {x['wall_s']:.2f} | "
+                             f"{x['summary'].get('wall_s', 0):.2f} | {_backend(x['summary'])} | "
                              f"{x['db']['verified_pairs']} | {x['db']['verified_inliers']} | - |")
     lines += ["", "| features | ours / COLMAP time | ours / COLMAP verified inliers | 2 / 1 workers (wall) | "
-              "2 / 1 workers (inner) |", "|---|---|---|---|---|"]
+              "2 / 1 workers (inner) | in-process 2 / 1 threads (wall) |", "|---|---|---|---|---|---|"]
     for name, row in result["sets"].items():
         q = row["ratios"]
         fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
         lines.append(f"| {name} | {fmt(q['time_ours_over_colmap'])} | {fmt(q['inliers_ours_over_colmap'])} | "
-                     f"{fmt(q['workers_2_over_1'])} | {fmt(q['workers_2_over_1_matching'])} |")
+                     f"{fmt(q['workers_2_over_1'])} | {fmt(q['workers_2_over_1_matching'])} | "
+                     f"{fmt(q.get('threads_2_over_1'))} |")
     lines += ["", "inner = time inside the process: COLMAP's match_exhaustive call; ours: the engine's wall time "
               "(matching, verdicts, writes, cluster start/stop), without the Python start-up and imports.", ""]
     return "\n".join(lines)
@@ -280,7 +317,7 @@ def figure(result: dict, path: Path) -> None:
                                              for n in names])
         ax.set_title(label, fontsize=10)
         ax.legend(fontsize=8)
-    fig.suptitle("Herz-Jesus-P8, 28 pairs, 2 CPU threads (shared machine)", fontsize=10)
+    fig.suptitle(f"Herz-Jesus-P8, 28 pairs, 2 CPU threads ({result.get('note', '')})", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -293,13 +330,15 @@ def main(argv=None) -> int:
     p.add_argument("--images", default=None, help=f"image folder (default DATA/{DATA_REL})")
     p.add_argument("--out", default="benchmarks/results/collection")
     p.add_argument("--work", default="/tmp/guidedmatch-bench-collection", help="databases (not in the repo)")
-    p.add_argument("--sets", default="default,50k")
+    p.add_argument("--sets", default="default,50k,mixed")
     p.add_argument("--no-scaling", action="store_true", help="skip the --workers 0/1/2 runs")
     p.add_argument("--note", default="", help="what code ran (recorded in the JSON and the table)")
+    p.add_argument("--reuse", action="store_true", help="reuse WORK/<set>.db of an earlier run (no re-extraction)")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note)
+    res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note,
+              reuse=a.reuse, data_root=Path(a.data))
     print(markdown(res))
     return 0
 
