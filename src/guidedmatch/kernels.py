@@ -13,6 +13,7 @@ Index ``-1`` and distance ``+inf`` mean "no such candidate".
 from __future__ import annotations
 
 import os
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -485,6 +486,7 @@ _guided_ser_fm = njit(parallel=False, cache=True, nogil=True,
 PARALLEL_MIN_QUERIES = 2048
 
 _POOL: list = [None, 0, 0]  # [ThreadPoolExecutor, its number of threads, the process id that started it]
+_POOL_LOCK = threading.Lock()
 
 
 def num_threads() -> int:
@@ -506,13 +508,15 @@ def _chunked(fn, n: int, min_rows: int, threads: int | None = None):
         return [fn(0, n)]
     cuts = [n * i // k for i in range(k + 1)]
     pid = os.getpid()
-    if _POOL[0] is None or _POOL[1] < k or _POOL[2] != pid:  # a forked child has none of its parent's threads
-        from concurrent.futures import ThreadPoolExecutor
+    with _POOL_LOCK:  # callers may be concurrent (the collection's in-process pair threads)
+        if _POOL[0] is None or _POOL[1] < k or _POOL[2] != pid:  # a forked child has none of its parent's threads
+            from concurrent.futures import ThreadPoolExecutor
 
-        if _POOL[0] is not None and _POOL[2] == pid:
-            _POOL[0].shutdown(wait=False)
-        _POOL[:] = [ThreadPoolExecutor(k, thread_name_prefix="guidedmatch-kernel"), k, pid]
-    futures = [_POOL[0].submit(fn, a, b) for a, b in zip(cuts[1:-1], cuts[2:])]
+            if _POOL[0] is not None and _POOL[2] == pid:
+                _POOL[0].shutdown(wait=False)  # work already submitted to it still runs
+            _POOL[:] = [ThreadPoolExecutor(k, thread_name_prefix="guidedmatch-kernel"), k, pid]
+        pool = _POOL[0]
+    futures = [pool.submit(fn, a, b) for a, b in zip(cuts[1:-1], cuts[2:])]
     first = fn(cuts[0], cuts[1])  # the calling thread takes the first chunk
     return [first] + [f.result() for f in futures]
 
