@@ -260,7 +260,8 @@ def _can_fork() -> bool:
     """Helpers are forked (Linux): they then cost only their compilation, nothing the caller would not do itself."""
     import multiprocessing
 
-    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+    return (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+            and not multiprocessing.current_process().daemon)  # a daemonic process may not have children
 
 
 def _start_helper(detector: str, group: str):
@@ -414,7 +415,7 @@ def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
         for group in groups:
             try:
                 procs[group] = _start_helper(detector, group)
-            except OSError:
+            except Exception:  # cannot start one (no fork, no resources): the foreground compiles instead
                 break
     bg = BackgroundCompile(procs)
     try:
