@@ -173,7 +173,7 @@ def test_bench_pairs_quick_writes_consistent_json_md_png(tmp_path):
     assert tot["so+epi+ia"]["time_s"] == pytest.approx(sum(r["methods"]["so+epi+ia"]["time_s"] for r in scene))
     md = (tmp_path / "pairs.md").read_text()
     for part in ("## Feature set `8192`", "### Totals over the 2 Herz-Jesus-P8 pairs", "### Issue-11 targets",
-                 "IVF-SQ8 cached (search)", "/ faiss exact", "shared"):
+                 "IVF-SQ8 cached (search)", "/ faiss exact", "load average", "(+ prepare amortized)"):
         assert part in md
     png = tmp_path / "pairs_angle.png"
     assert png.exists() and png.stat().st_size > 10_000

@@ -47,7 +47,8 @@ def perf_table(guided: dict) -> str:
 
 
 PAIRS_START, PAIRS_END = "<!-- pairs:start -->", "<!-- pairs:end -->"
-PAIRS_ROWS = (("so+epi+ia", "**guidedmatch so+epi+ia**"), ("bf", "guidedmatch BF (GEMM)"), ("faiss_flat", "faiss exact 2-NN"),
+PAIRS_ROWS = (("so+epi+ia", "**guidedmatch so+epi+ia**"),
+              ("so+epi+ia+prep", "guidedmatch so+epi+ia, image preparation (its index) amortized"), ("bf", "guidedmatch BF (GEMM)"), ("faiss_flat", "faiss exact 2-NN"),
               ("faiss_ivf", "COLMAP-style cached IVF-SQ8 (search only)"), ("faiss_ivf+build", "IVF-SQ8, index build amortized"),
               ("opencv_flann", "OpenCV FLANN (KD-tree)"))
 
@@ -83,7 +84,7 @@ def pairs_headline(res: dict, link: str = "benchmarks/results/pairs/pairs.md") -
         if res.get("verdict_source_ours") == ["matcher"] else "verdicts: a robust fit on the returned matches"
     out += ["", f"(`{res.get('command', 'guidedmatch bench pairs')}`, commit `{str(meta.get('git_commit'))[:10]}`"
             f"{' + local changes' if meta.get('git_dirty') else ''}, {str(meta.get('timestamp_utc', ''))[:16]} UTC, "
-            f"{meta.get('cpu_model')}, 2 cores shared with other jobs: times are noisy, same-run ratios hold. Matching only, "
+            f"{meta.get('cpu_model')}, {res.get('machine_note', '2 cores shared with other jobs: times are noisy, same-run ratios hold')}. Matching only, "
             f"detection excluded; GT inliers = symmetric epipolar distance < 3 px under the GT cameras; {verdict}. "
             f"Per pair, targets and the plot against the camera angle: [{link}]({link}).)", PAIRS_END]
     return "\n".join(out)

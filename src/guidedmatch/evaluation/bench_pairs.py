@@ -63,6 +63,16 @@ FLANN = dict(trees=4, checks=64)  # as benchmarks/bench_guided.py (the issue's F
 QUICK = dict(scale=0.5, pairs=("0000-0001", "0000-0005"), unrelated=1, cap={"8192": 2048, "0.01": 6000})
 DENSE_PAIR = ("0002", "0003")
 DENSE_CT = 0.002
+def machine_note() -> str:
+    """What the load average said when the run started (2 cores: above ~1, other jobs were running)."""
+    import os
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    busy = "other jobs were running: absolute times are noisy" if load > 1.2 else "no other heavy job was running"
+    return f"load average {load:.1f} on {os.cpu_count()} cores when the run started ({busy}); ratios between methods " \
+           "measured in the same run and the comparison counts are the robust numbers"
+
+
 MACHINE_NOTE = ("the machine (2 cores) was shared with several other agents' jobs during the run: absolute times are "
                 "noisy; ratios between methods measured in the same run and the comparison counts are the robust numbers")
 
@@ -566,7 +576,7 @@ def write_report(out: Path, res: dict, command: str) -> Path:
           f"`{command}` -- commit `{str(meta.get('git_commit'))[:10]}`{' + local changes' if meta.get('git_dirty') else ''}, "
           f"{str(meta.get('timestamp_utc', ''))[:16]} UTC, {meta.get('cpu_model')}, {meta.get('usable_cores')} usable cores, "
           f"{res['elapsed_s'] / 60:.1f} min.", "",
-          f"**Timing caveat**: {MACHINE_NOTE}.", "",
+          f"**Timing caveat**: {res.get('machine_note', MACHINE_NOTE)}.", "",
           f"Times: the matching call only (detection excluded, features cached), median of {res['repeats']} run(s), "
           "after a warm-up of every method. GT inliers: symmetric epipolar distance < 3 px under the GT cameras "
           "(unrelated pairs: every match is wrong). Comparisons: descriptor distances evaluated, exact counts "
@@ -718,7 +728,7 @@ def main(args) -> int:
         write_report(out, {**res, "figure": plot(out, res)}, command + " (partial: still running)")
 
     res: dict[str, Any] = dict(command=command, meta=run_metadata(seed=getattr(args, "seed", 0)), quick=quick, repeats=repeats,
-                               machine_note=MACHINE_NOTE, config=dataclasses.asdict(config),
+                               machine_note=machine_note(), config=dataclasses.asdict(config),
                                sets={})
     for name in sets:
         s = run_set(name, root, out, quick=quick, repeats=repeats, config=config)
