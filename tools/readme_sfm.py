@@ -64,8 +64,9 @@ def section(results: dict) -> str:
              f"Last run: `{results.get('command', 'guidedmatch bench sfm')}` (commit "
              f"`{str(meta.get('git_commit'))[:10]}`{' + local changes' if meta.get('git_dirty') else ''}, "
              f"{str(meta.get('timestamp_utc', ''))[:16]} UTC, {meta.get('cpu_model')}), then "
-             "`python tools/readme_sfm.py`. The machine was shared with other jobs while it ran: times are "
-             "indicative; inlier counts, registrations and pose errors are exact for the run. Raw numbers: "
+             "`python tools/readme_sfm.py`. Rows kept from earlier runs (`--merge`, see the finish times) may have "
+             "run while the machine was shared with other jobs: compare times within one run; inlier counts, "
+             "registrations and pose errors are exact for each run. Raw numbers: "
              "[benchmarks/results/sfm/sfm.json](benchmarks/results/sfm/sfm.json), plot: "
              "[sfm_time_vs_inliers.png](benchmarks/results/sfm/sfm_time_vs_inliers.png).", END]
     return "\n".join(lines) + "\n"
