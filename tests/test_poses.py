@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from guidedmatch.datasets import data_root
 from guidedmatch.errors import InputError
+from guidedmatch.testing.data import needs_data
 from guidedmatch.evaluation.poses import (CameraPose, evaluate_poses, pose_auc, read_strecha_camera,
                                           read_strecha_cameras, rotation_error_deg)
 
@@ -154,7 +155,7 @@ def test_bad_camera_file(tmp_path):
         read_strecha_cameras(tmp_path / "nothing")
 
 
-@pytest.mark.skipif(data_root() is None, reason="evaluation data not found (set GUIDEDMATCH_DATA)")
+@needs_data("pose_pairs/strecha/strecha_pairs_with_gt.txt", "pose_pairs/strecha/Herz-Jesus-P8/gt_dense_cameras/*.camera")
 def test_strecha_cameras_agree_with_the_pairs_file():
     """The .camera convention (R camera-to-world, centre) reproduces the independent SuperGlue-style pairs file."""
     from guidedmatch.evaluation.poses import relative_pose
