@@ -48,7 +48,8 @@ Memory bound
   ``M * 21`` bytes (``(M, 2) int64`` matches + ``(M,) float32`` scores + ``(M,)`` inlier mask, ``M <= min(n1,
   n2)``): with 2 workers, 2 tasks each, 16 pairs per task and 8192 features, <= 11 MB, whatever the collection
   size. Plus the pair list itself (names, ~200 bytes per pair), the sink's done-pair set and at most
-  ``report_max_pairs`` per-pair dicts kept in the report (all of them go to ``log_path``).
+  ``report_max_pairs`` per-pair dicts kept in the report (all of them go to ``log_path``). In-process with
+  ``threads`` threads: at most ``2 * threads`` pairs in flight (their matcher working memory and results).
 * Each worker process (and this process when in-process): the image cache, at most ``cache_mb`` MB of loaded
   images (estimated as their array bytes: keypoints 16 B + descriptors 4 B x D per feature, plus, with
   ``guidedmatch.prepared``, the prepared image's arrays and 4 B x D for its approximate index: ~1.2 KB per SIFT
