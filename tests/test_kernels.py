@@ -666,3 +666,21 @@ def test_chunked_runs_in_threads_and_survives_a_fork():
         p.join()
     assert p.exitcode == 0, "a forked child must not hang on its parent's thread pool"
     assert q.get(timeout=5) == [500, 500]
+
+
+def test_limit_threads_here_caps_only_the_calling_thread():
+    import threading
+
+    from guidedmatch import kernels
+
+    before = kernels.num_threads()
+    seen = []
+
+    def worker():
+        kernels.limit_threads_here(1)
+        seen.append(kernels.num_threads())
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert seen == [1] and kernels.num_threads() == before

@@ -489,9 +489,22 @@ _POOL: list = [None, 0, 0]  # [ThreadPoolExecutor, its number of threads, the pr
 _POOL_LOCK = threading.Lock()
 
 
+_LOCAL = threading.local()  # per-thread cap of num_threads() (limit_threads_here)
+
+
+def limit_threads_here(n: int) -> None:
+    """Cap :func:`num_threads` at ``n`` for the calling thread only (a pool thread matching one pair of a collection
+    while other threads match others: its kernel calls then run in that thread, unchunked)."""
+    _LOCAL.cap = max(1, int(n))
+
+
 def num_threads() -> int:
-    """Threads a large kernel call uses: Numba's thread count (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``;
-    read without starting Numba's own thread pool when nothing else started it)."""
+    """Threads a large kernel call uses: the calling thread's cap (:func:`limit_threads_here`), else Numba's thread
+    count (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``; read without starting Numba's own thread pool when
+    nothing else started it)."""
+    cap = getattr(_LOCAL, "cap", None)
+    if cap is not None:
+        return cap
     import numba
     from numba.np.ufunc import parallel
 

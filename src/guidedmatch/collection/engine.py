@@ -71,7 +71,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import importlib.util
 import json
 import logging
 import os
@@ -318,34 +317,11 @@ def _forget_run(run_id: str) -> bool:
     return cache is not None
 
 
-_THREAD_STATE = threading.local()
-
-
 def _workers_text(t: dict) -> str:
     if t.get("backend") == "in-process":
         n = t.get("threads", 1)
         return f"{n} thread{'s' if n != 1 else ''}"
     return f"{t.get('workers')} worker(s)"
-
-
-class _single_thread_faiss:
-    """faiss's OpenMP team set to one thread inside the block (pairs run concurrently on a thread pool: the
-    concurrency is across pairs; nested save/restore of the thread count by concurrent threads would race)."""
-
-    def __enter__(self):
-        self.old = None
-        if "faiss" in sys.modules or importlib.util.find_spec("faiss") is not None:
-            import faiss
-
-            self.old = faiss.omp_get_max_threads()
-            faiss.omp_set_num_threads(1)
-        return self
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            import faiss
-
-            faiss.omp_set_num_threads(self.old)
 
 
 def _limit_threads() -> None:
@@ -614,18 +590,18 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
 
     import concurrent.futures as cf
 
-    def one(a: str, b: str) -> PairOutcome:
-        if getattr(_THREAD_STATE, "numba_threads", None) != 1:
-            with contextlib.suppress(Exception):
-                import numba
+    from .. import kernels
+    from ..prepared import _faiss_threads
 
-                numba.set_num_threads(1)  # thread-local: this pool thread only
-            _THREAD_STATE.numba_threads = 1
+    def one(a: str, b: str) -> PairOutcome:
+        kernels.limit_threads_here(1)  # this pool thread's kernel calls stay in it: the concurrency is across pairs
         return _match_one(cache, a, b, spec, "in-process")
 
     pending: collections.deque = collections.deque()  # (anchor, remaining pairs of its task)
     inflight: dict = {}
-    with _single_thread_faiss(), cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
+    # faiss single-threaded for the whole run: the per-search save / set / restore of its global thread count
+    # (prepared._faiss_threads) then only ever writes 1, so concurrent searches cannot race on it
+    with _faiss_threads(1), cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
         def fill() -> None:
             while len(inflight) < 2 * threads:
                 if not pending:
@@ -910,7 +886,8 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                   match_s=float(s["match_s"]), cache_hits=facts["cache_hits"],
                   image_loads=facts["image_loads"], images=len(nfeat), startup_s=startup_s, shutdown_s=shutdown_s,
                   pairs_per_s=writer.done / wall if wall > 0 else 0.0, chunk_pairs=chunk,
-                  max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process" else 1,
+                  max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process"
+                  else (1 if facts.get("threads", 1) <= 1 else 2 * facts["threads"]),
                   cache_mb=cfg.cache_mb, prepared=_prepare_fn() is not None,
                   retried=sum(1 for k, v in writer.attempts.items() if v > 1))
     report = CollectionReport(writer.done, skipped, writer.failed, writer.per_pair, totals, wall)
