@@ -85,9 +85,9 @@ def _timed(cmd: list[str], log: Path | None = None) -> dict:
 
 
 def _backend(s: dict) -> str:
-    if s.get("backend") == "in-process":
-        return f"in-process ({s.get('threads', 1)} thread{'s' if s.get('threads', 1) != 1 else ''})"
-    return f"{s.get('backend')} ({s.get('workers')})"
+    from ..collection.engine import _workers_text
+
+    return f"{s.get('backend')} ({_workers_text(s)})"
 
 
 def extract(image_dir: Path, db: Path, options: dict) -> dict:
@@ -178,9 +178,10 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
     if not image_dir.is_dir():
         raise FileNotFoundError(f"Herz-Jesus-P8 images not found: {image_dir}")
     work.mkdir(parents=True, exist_ok=True)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    result = dict(meta=run_metadata(), threads=THREADS, images=str(image_dir), sets={}, run_note=note,
-                  note=f"load average {load:.1f} when the run started (2 cores): wall times are noisy when it is > 1")
+    meta = run_metadata()
+    result = dict(meta=meta, threads=THREADS, images=str(image_dir), sets={}, run_note=note,
+                  note=f"load average {meta['load_average'] or float('nan'):.1f} when the run started (2 cores): wall "
+                       "times are noisy when it is > 1")
     old = out_dir / "collection.json"
     if old.exists():  # keep the sets of an earlier run that this one does not redo
         with open(old) as fh:

@@ -63,11 +63,12 @@ FLANN = dict(trees=4, checks=64)  # as benchmarks/bench_guided.py (the issue's F
 QUICK = dict(scale=0.5, pairs=("0000-0001", "0000-0005"), unrelated=1, cap={"8192": 2048, "0.01": 6000})
 DENSE_PAIR = ("0002", "0003")
 DENSE_CT = 0.002
-def machine_note() -> str:
-    """What the load average said when the run started (2 cores: above ~1, other jobs were running)."""
+def machine_note(meta: dict) -> str:
+    """What the load average said when the run started (``run_metadata()["load_average"]``; 2 cores: above ~1,
+    other jobs were running)."""
     import os
 
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = meta.get("load_average") or float("nan")
     busy = "other jobs were running: absolute times are noisy" if load > 1.2 else "no other heavy job was running"
     return f"load average {load:.1f} on {os.cpu_count()} cores when the run started ({busy}); ratios between methods " \
            "measured in the same run and the comparison counts are the robust numbers"
@@ -727,8 +728,9 @@ def main(args) -> int:
         write_json(out / "pairs.json", {**res, "partial": True})
         write_report(out, {**res, "figure": plot(out, res)}, command + " (partial: still running)")
 
-    res: dict[str, Any] = dict(command=command, meta=run_metadata(seed=getattr(args, "seed", 0)), quick=quick, repeats=repeats,
-                               machine_note=machine_note(), config=dataclasses.asdict(config),
+    meta = run_metadata(seed=getattr(args, "seed", 0))
+    res: dict[str, Any] = dict(command=command, meta=meta, quick=quick, repeats=repeats,
+                               machine_note=machine_note(meta), config=dataclasses.asdict(config),
                                sets={})
     for name in sets:
         s = run_set(name, root, out, quick=quick, repeats=repeats, config=config)

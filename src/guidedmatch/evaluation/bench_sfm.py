@@ -19,7 +19,6 @@ error, AUC@1/2/5 deg. Writes ``sfm.json`` (with run metadata), ``sfm.md`` and ``
 from __future__ import annotations
 
 import datetime as _dt
-import os
 import json
 import shutil
 import sys
@@ -327,10 +326,9 @@ def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None
     explicit = methods is not None
     work = Path(work) if work is not None else out / "work"
     rows = []
-    results = {"meta": run_metadata(seed), "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-               "command": command, "scene": str(scene), "threads": threads,
+    results = {"meta": run_metadata(seed), "command": command, "scene": str(scene), "threads": threads,
                "methods": methods, "settings": list(settings), "rows": rows, "end_to_end": None,
-               "note": "wall-clock times on 2 cores (see load_average); same features for all methods"}
+               "note": "wall-clock times on 2 cores (see meta.load_average); same features for all methods"}
     old_rows, old_e2e = [], None
     if merge and (out / "sfm.json").is_file():
         old = json.loads((out / "sfm.json").read_text())
@@ -372,7 +370,7 @@ def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None
     md = ["# guidedmatch in COLMAP: Herz-Jesus-P8 sfm benchmark", "",
           f"`{command}` -- {results['meta'].get('timestamp_utc')}, commit `{(results['meta'].get('git_commit') or '')[:10]}`, "
           f"{results['meta'].get('cpu_model')}, {threads} threads. Load average "
-          f"{results.get('load_average') or float('nan'):.1f} when this run started (2 cores); rows kept from earlier runs "
+          f"{results['meta'].get('load_average') or float('nan'):.1f} when this run started (2 cores); rows kept from earlier runs "
           "(--merge) may come from a loaded machine: compare times within one run; inlier counts and poses are exact.", "", markdown_table(rows),
           *(["**End to end** (8192 features, defaults of `guidedmatch sfm`)", "", e2e_table(results["end_to_end"]), ""]
             if results["end_to_end"] else []),

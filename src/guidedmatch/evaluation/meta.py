@@ -73,7 +73,8 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
     ``usable_cores`` (CPU affinity); threads: ``numba_num_threads`` (``numba.get_num_threads()``),
     ``cv2_num_threads``, ``faiss_omp_threads`` and the environment variables ``NUMBA_NUM_THREADS``,
     ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ... (None when unset);
-    ``platform``, ``machine``, ``timestamp_utc`` (ISO 8601), ``seed``.
+    ``platform``, ``machine``, ``timestamp_utc`` (ISO 8601), ``seed``; ``load_average`` (1-minute load average when
+    the run started, None where the OS has none: above ~1 on 2 cores, other jobs were running).
     """
     git = git_info()
     meta: dict[str, Any] = {"git_commit": git["commit"], "git_dirty": git["dirty"],
@@ -111,6 +112,7 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
     meta["machine"] = platform.machine()
     meta["timestamp_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     meta["seed"] = seed
+    meta["load_average"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     return meta
 
 
