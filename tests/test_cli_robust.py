@@ -147,6 +147,28 @@ def test_memory_limit_is_a_clean_error_with_a_suggested_size(files, capsys, monk
     _one_line_error(capsys, rc, "--max-image-size", "a.png")
 
 
+@pytest.mark.parametrize("bad", ["cut.jpg", "memory"])
+def test_bad_input_on_a_first_run_is_one_line_before_any_compile_note(files, capsys, monkeypatch, bad):
+    # on a cold Numba cache the helpers start (and the compile note prints) only after the images were read and
+    # their detection memory checked: a corrupt or too large image is still exactly one error line
+    import guidedmatch.features as F
+    from guidedmatch import jit
+
+    started = []
+    monkeypatch.setattr(jit, "cache_is_cold", lambda detector: True)
+    monkeypatch.setattr(jit, "_background_wanted", lambda: True)
+    monkeypatch.setattr(jit, "_note_printed", False)
+    monkeypatch.setattr(jit, "_start_helper", lambda detector, group: started.append(group))
+    if bad == "memory":
+        monkeypatch.setattr(F, "available_memory", lambda: 120 << 20)
+        rc = main(["match", str(files / "a.png"), str(files / "b.jpg")])
+        _one_line_error(capsys, rc, "--max-image-size", "a.png")
+    else:
+        rc = main(["match", str(files / "cut.jpg"), str(files / "a.png")])
+        _one_line_error(capsys, rc, "cut.jpg", "truncated or corrupt")
+    assert started == []
+
+
 def test_keep_unverified_needs_output(files, capsys):
     rc = main(["match", str(files / "a.png"), str(files / "b.jpg"), "--keep-unverified"])
     _one_line_error(capsys, rc, "--keep-unverified needs -o")

@@ -97,17 +97,23 @@ def matcher_config(items: list[str] | None) -> MatcherConfig:
         raise ConfigError(f"bad --config: {exc}") from None
 
 
-def _detect_both(img1, img2, detector, max_features, options, max_image_size=None, names=("IMG1", "IMG2")):
-    from .features import check_detect_memory, detect
+def _check_detect_memory_both(img1, img2, detector, max_image_size=None, names=("IMG1", "IMG2")) -> None:
+    """MemoryLimitError (with a suggested --max-image-size) when detecting either image would not fit, before any
+    detection (or compilation) starts."""
+    from .features import check_detect_memory
 
-    feats = []
     for img, name in zip((img1, img2), names):
         h, w = img.shape[:2]
         if max_image_size and max(w, h) > max_image_size:
             s = max_image_size / max(w, h)
             w, h = max(1, round(w * s)), max(1, round(h * s))
-        check_detect_memory(w, h, detector, name)  # MemoryLimitError with a suggested --max-image-size
-        feats.append(detect(img, detector, max_features, max_image_size=max_image_size, **options))
+        check_detect_memory(w, h, detector, name)
+
+
+def _detect_both(img1, img2, detector, max_features, options, max_image_size=None, names=("IMG1", "IMG2")):
+    from .features import detect
+
+    feats = [detect(img, detector, max_features, max_image_size=max_image_size, **options) for img in (img1, img2)]
     for name, f in zip(names, feats):
         if len(f) == 0:
             raise InputError(f"no features detected in {name} ({detector}); the image may be blank or too small")
@@ -192,9 +198,12 @@ def cmd_match(args) -> int:
 
     from .jit import background_compile, guided_kernels_needed
 
+    # the images are read (strict decode) and their detection memory checked before the first-run compile starts:
+    # a corrupt or too large image is one error line, with no compile note before it and no helper started
+    img1 = load_image(args.img1)
+    img2 = load_image(args.img2)
+    _check_detect_memory_both(img1, img2, args.detector, args.max_image_size, (args.img1, args.img2))
     with background_compile(args.detector, (args.mode,)) as bg:  # first run: kernels compile on both cores meanwhile
-        img1 = load_image(args.img1)
-        img2 = load_image(args.img2)
         t0 = time.perf_counter()
         f1, f2 = _detect_both(img1, img2, args.detector, args.max_features, detector_options, args.max_image_size,
                               (args.img1, args.img2))
