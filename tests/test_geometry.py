@@ -293,3 +293,32 @@ def test_fundamental_support_is_the_verdicts_count():
     g = two_view_geometry(x1, x2, size, size, VerdictConfig(max_iters=1000), frames=(a1, a2))
     assert fundamental_support(g.F, x1, x2, size, size) == g.evidence["F_inliers"]
     assert fundamental_support(None, x1, x2, size, size) == 0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_second_search_only_skips_the_all_evidence_fit(seed, monkeypatch):
+    """``second_search="only"`` (the matcher's re-check of a weak verdict): the RANSAC over all the evidence is not
+    run, ``F_prior`` stands in for it, the orientation-consistent subset is searched whatever was verified, and the
+    verdict is counted by the same rule (same bound, same inliers as ``fundamental_support``)."""
+    import guidedmatch.geometry as geometry
+    from guidedmatch.geometry import fundamental_support
+
+    x1, x2, a1, a2, true, size = _low_ratio_scene(seed)
+    cfg = VerdictConfig(max_iters=1000)
+    calls = []
+    real = geometry.estimate_fundamental
+    monkeypatch.setattr(geometry, "estimate_fundamental", lambda a, b, **kw: calls.append(len(a)) or real(a, b, **kw))
+    g = two_view_geometry(x1, x2, size, size, cfg, frames=(a1, a2), second_search="only", second_iters=10000)
+    assert len(calls) == 1 and calls[0] < len(x1)  # the subset only
+    assert g.verdict == "verified" and g.evidence["F_from_frames"]
+    assert g.evidence["F_inliers"] == fundamental_support(g.F, x1, x2, size, size)
+    full = two_view_geometry(x1, x2, size, size, cfg, frames=(a1, a2))
+    assert g.evidence["random_bound_F"] == full.evidence["random_bound_F"]
+    # a verified quick result as prior: kept unless the subset's F explains more
+    calls.clear()
+    easy = two_view_geometry(x1[true], x2[true], size, size, cfg)
+    again = two_view_geometry(x1[true], x2[true], size, size, cfg, F_prior=easy.F, frames=(a1[true], a2[true]),
+                              second_search="only")
+    assert again and again.evidence["F_inliers"] >= easy.evidence["F_inliers"]
+    with pytest.raises(ValueError, match="second_search"):
+        two_view_geometry(x1, x2, size, size, cfg, second_search="always")

@@ -706,6 +706,7 @@ def test_frame_hypotheses_recover_a_low_inlier_ratio_pair(monkeypatch):
     12 %-correct evidence that RANSAC alone calls "no-overlap", and the first guiding F must pass the verdict's rule
     (else the verdict's F guides). Each half is necessary: without the rule the pair returns nothing; with the
     search but a first F fitted on all the evidence, it follows a wrong F."""
+    import guidedmatch.matcher as matcher_module
     from guidedmatch.matcher import _GuidedRun
 
     f1, f2, true_j = _low_ratio_features()
@@ -724,9 +725,33 @@ def test_frame_hypotheses_recover_a_low_inlier_ratio_pair(monkeypatch):
     assert any(c["verdict"] == "verified" for c in on.stats.details["verdict_checks"])
     assert correct(on) >= 0.9 * n_true and correct(on) >= 0.8 * len(on)  # BF: 12 % precision
     assert on.stats.comparisons < 0.1 * len(f1) * len(f2)
-    # without the first-F check the guided phase follows an F fitted on 12 %-correct evidence
-    first_fit = [f for f in on.stats.fallbacks if f.what == "fundamental" and "first F" in f.reason]
+    # the first F comes from the verdict's inliers: at this inlier ratio a fresh fit on all the evidence is skipped
+    assert on.stats.updates[0].F_fit in ("verdict", "verdict inliers")
+    assert all(u.F_fit == "ransac" for u in on.stats.updates[1:])
+    # without the low-ratio rule the fresh fit runs, fails the verdict's rule, and is replaced (reported)
+    monkeypatch.setattr(matcher_module, "_ransac_draws", lambda verdict: 0.0)
+    fresh = match(f1, f2, "so+epi+ia")
+    first_fit = [f for f in fresh.stats.fallbacks if f.what == "fundamental" and "first F" in f.reason]
     assert len(first_fit) == 1 and first_fit[0].at_update == 0
+    assert fresh.stats.updates[0].F_fit in ("verdict", "verdict inliers")
+    # without either, the guided phase follows an F fitted on 12 %-correct evidence
     monkeypatch.setattr(_GuidedRun, "verified_first_F", lambda self, fr, verdict, p1, p2: fr)
     unchecked = match(f1, f2, "so+epi+ia")
+    assert unchecked.stats.updates[0].F_fit == "ransac"
     assert correct(unchecked) < 0.5 * correct(on)
+
+
+@pytest.mark.parametrize("w", [0.05, 0.2, 0.43, 0.6, 0.95])
+def test_ransac_draws_formula(w):
+    """``_ransac_draws``: draws for 99.9 % confidence of one all-inlier 7-point sample, against the direct product."""
+    from types import SimpleNamespace
+
+    from guidedmatch.matcher import _ransac_draws
+
+    m = 1000
+    v = SimpleNamespace(evidence=dict(F_inliers_raw=int(round(w * m)), num_evidence=m))
+    k = _ransac_draws(v)
+    p_miss = (1.0 - (round(w * m) / m) ** 7) ** k  # no all-inlier sample in k draws
+    assert p_miss == pytest.approx(0.001, rel=1e-6)
+    assert _ransac_draws(SimpleNamespace(evidence=dict(F_inliers_raw=0, num_evidence=50))) == float("inf")
+    assert _ransac_draws(SimpleNamespace(evidence=dict(F_inliers_raw=50, num_evidence=50))) == 1.0

@@ -28,6 +28,9 @@ that from the correspondences alone:
    inliers (66 correct) against a bound of 33 (RANSAC on all: 16 at 1000 iterations; brute force's own 680
    ratio-test matches: 20 at 10000, 67 only at 100000). Null pairs (Herz-Jesus x 24 Unsplash photos and photo x
    photo, 468 pairs at 8192 features, 192 at ~40k, through the matcher): none verified with or without it.
+   The matcher also uses it (``second_search="only"``, 10000 iterations) to re-check a verified but weak verdict:
+   on the subset RANSAC converges in hundreds of draws where 10000 over all the evidence run to the cap
+   (Herz-Jesus 0001-0006 at 8192: 12 ms per re-check -> ~1 ms; more GT inliers on both feature sets, docs/pairs.md).
 
 Calibration (issue 11; Herz-Jesus-P8 and Unsplash photos, scripts ``/tmp/pairs/null_cal.py`` and
 ``/tmp/pairs/evidence.py`` of the pairs helper, numbers in the commit messages):
@@ -325,7 +328,8 @@ def fundamental_support(F, x1, x2, size1, size2, config: VerdictConfig | None = 
 
 def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None, *,
                       report_on: tuple | None = None, F_prior: np.ndarray | None = None,
-                      frames: tuple | None = None) -> TwoViewGeometry:
+                      frames: tuple | None = None, second_search: str = "fallback",
+                      second_iters: int | None = None) -> TwoViewGeometry:
     """Decide whether correspondences ``x1 (M,2)`` <-> ``x2 (M,2)`` (pixels) share a verified geometry.
 
     Args:
@@ -341,6 +345,11 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
             keypoints. When neither F (from all the evidence or ``F_prior``) nor H is verified, a second F is fitted
             on the :func:`consistent_frames` subset (``frame_tolerance_deg``) and kept when it has more independent
             inliers over *all* the evidence (module doc, step 4); the bound is unchanged.
+        second_search: ``"fallback"`` -- the orientation-consistent F of ``frames`` is fitted only when nothing is
+            verified (above); ``"only"`` -- it is fitted whatever the first fits found and the RANSAC over all the
+            evidence is skipped (``F_prior`` stands in for it): the matcher's re-check of a weak verdict, where the
+            all-evidence fit has just run on the same evidence (module doc, step 4).
+        second_iters: RANSAC iterations of that fit (default ``config.max_iters``).
 
     Returns:
         :class:`TwoViewGeometry`; never raises on degenerate input (too few, collinear, identical points).
@@ -372,11 +381,14 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
     if m < 4 or finite.sum() < 4:
         return TwoViewGeometry("too-few-matches", "none", None, None, none, 0, len(r1),
                                f"{m} correspondences: at least 4 (H) or 8 (F) are needed", ev)
+    if second_search not in ("fallback", "only"):
+        raise ValueError(f"second_search must be 'fallback' or 'only', got {second_search!r}")
     a, b = x1[finite], x2[finite]
     F = None
     nf = 0
-    fr = estimate_fundamental(a, b, method=c.method, threshold=c.threshold_px / 2.0, max_iters=c.max_iters,
-                              seed=c.seed)
+    only = second_search == "only" and frames is not None
+    fr = None if only else estimate_fundamental(a, b, method=c.method, threshold=c.threshold_px / 2.0,
+                                                max_iters=c.max_iters, seed=c.seed)
     if fr:
         F = fr.F
         with np.errstate(invalid="ignore"):
@@ -399,14 +411,14 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
         nh = _independent_inliers(a, b, inl_h, None, c.threshold_px, size1, size2)
         ev["H_inliers_raw"] = int(inl_h.sum())
     ok_h = H is not None and nh >= c.min_inliers and nh > bound_h
-    if frames is not None and not ok_h and not (F is not None and nf >= c.min_inliers and nf > bound_f):
+    if frames is not None and (only or (not ok_h and not (F is not None and nf >= c.min_inliers and nf > bound_f))):
         # low inlier ratio: RANSAC on all the evidence cannot draw an all-inlier sample in max_iters; the
         # orientation-consistent subset holds most correct correspondences at a 2-4x higher ratio (step 4)
         sub = consistent_frames(np.asarray(frames[0]).reshape(-1)[finite], np.asarray(frames[1]).reshape(-1)[finite],
                                 c.frame_tolerance_deg)
         if sub is not None and 8 <= sub.sum() < len(sub):
             fs = estimate_fundamental(a[sub], b[sub], method=c.method, threshold=c.threshold_px / 2.0,
-                                      max_iters=c.max_iters, seed=c.seed)
+                                      max_iters=second_iters or c.max_iters, seed=c.seed)
             if fs:
                 with np.errstate(invalid="ignore"):
                     inl_s = sampson_distance(fs.F, a, b) <= c.threshold_px

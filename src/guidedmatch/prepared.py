@@ -6,7 +6,9 @@ for the GEMM, and -- the expensive part -- an approximate index of the image for
 :func:`prepare` does it once; :func:`guidedmatch.matcher.match` accepts the :class:`PreparedImage` on either side
 (or plain :class:`~guidedmatch.features.Features`, which it prepares itself) and returns the same matches either way.
 
-The approximate index (float descriptors only) is a faiss ``IndexIVFFlat`` (exact L2 inside the probed lists):
+The approximate index (float descriptors only) is a faiss ``IndexIVFFlat`` (exact L2 inside the probed lists; for
+byte-valued descriptors such as OpenCV's or COLMAP's SIFT an ``IndexIVFScalarQuantizer`` with ``QT_8bit_direct`` codes
+and no residual, which stores the same values in a quarter of the memory and gives the same exact distances):
 ``nlist = nlist_factor * sqrt(N)`` k-means cells trained on at most ``train_per_list * nlist`` descriptors with a fixed
 seed, so it is deterministic; ``nprobe`` cells are searched per query. It is built lazily the first time the image is
 the second image of a pair whose unguided phase uses it, then kept. Measured on Herz-Jesus-P8 (8192 SIFT per image,
@@ -38,7 +40,7 @@ __all__ = ["PreparedConfig", "PreparedImage", "prepare", "as_prepared"]
 class PreparedConfig:
     """How :func:`prepare` indexes an image for the unguided phase."""
 
-    index: str = "ivf"                # approximate index of float descriptors: "ivf" (faiss IVF-Flat) or "none"
+    index: str = "ivf"                # approximate index of float descriptors: "ivf" (faiss IVF; 8-bit codes when byte-valued) or "none"
     nlist_factor: float = 2.0         # IVF cells = nlist_factor * sqrt(N) (COLMAP: 4; 2 as fast, same verdicts)
     nprobe: int = 4                   # IVF cells searched per query
     train_per_list: int = 40          # k-means trained on at most this many descriptors per cell (faiss wants >= 39)
@@ -131,7 +133,7 @@ class PreparedImage:
         return int(min(n, c.train_per_list * nlist) * nlist * c.kmeans_iters + n * nlist)
 
     def index(self):
-        """The faiss IVF-Flat index of the descriptors, built on first call (thread-safe), or None."""
+        """The faiss IVF index of the descriptors (IVF-Flat, or IVF-SQ8-direct when byte-exact), built on first call (thread-safe), or None."""
         if not self.has_index:
             return None
         with self._lock:
@@ -153,7 +155,13 @@ class PreparedImage:
         rng = np.random.default_rng(c.seed)
         train = d if ntrain >= n else d[np.sort(rng.choice(n, ntrain, replace=False))]
         quantizer = faiss.IndexFlatL2(dim)
-        index = faiss.IndexIVFFlat(quantizer, dim, nlist)
+        if self.byte_exact:
+            # byte-valued descriptors (OpenCV / COLMAP SIFT): stored as 8-bit codes, no residual -- the same exact L2
+            # distances from a quarter of the memory traffic (Herz-Jesus ~40k: search 30 % faster, same neighbours)
+            index = faiss.IndexIVFScalarQuantizer(quantizer, dim, nlist, faiss.ScalarQuantizer.QT_8bit_direct,
+                                                  faiss.METRIC_L2, False)
+        else:
+            index = faiss.IndexIVFFlat(quantizer, dim, nlist)
         index.cp.niter = int(c.kmeans_iters)
         index.cp.seed = int(c.seed)
         index.cp.min_points_per_centroid = 1  # silence faiss's "please provide more points" warning
@@ -177,7 +185,9 @@ class PreparedImage:
         if index is None:
             raise InputError("this image has no approximate index (binary descriptors, too few, or index='none')")
         q = np.ascontiguousarray(queries, np.float32)
-        with _faiss_threads(1):
+        # the calling thread's kernel thread count (1 in a collection's pair threads): a batch of >= 64 queries keeps
+        # faiss's OpenMP team busy (Herz-Jesus ~40k unrelated pair: unguided start 0.6 -> 0.35 s on 2 cores)
+        with _faiss_threads(kernels.num_threads() if len(q) >= 64 else 1):
             Dq, Iq = index.quantizer.search(q, index.nprobe)
             D, I = index.search_preassigned(q, 2, Iq, Dq)
         comparisons = int(len(q)) * self.nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())

@@ -71,6 +71,9 @@ class ModelUpdate:
         update: 1-based index of the update.
         num_correspondences: correspondences the models were fitted on.
         F_inliers: RANSAC inliers of F (None: F not estimated or failed).
+        F_fit: how F was fitted: ``"ransac"`` (USAC on all the correspondences), ``"verdict inliers"`` (first
+            update: refitted on the inliers of the two-view verdict's F, when the verdict's inlier ratio is too low
+            for a fresh fit or the fresh fit failed the verdict's rule) or ``"verdict"`` (the verdict's F itself).
         focal: ``(f1, f2)`` focal lengths used by the alignment, pixels (mode IA).
         focal_fallback: ``(bool, bool)``: the Bougnoux focal was unusable and ``w + h`` was used.
         roll_deg: camera roll removed by the alignment, degrees.
@@ -88,6 +91,7 @@ class ModelUpdate:
     update: int
     num_correspondences: int
     F_inliers: int | None = None
+    F_fit: str | None = None
     focal: tuple[float, float] | None = None
     focal_fallback: tuple[bool, bool] | None = None
     roll_deg: float | None = None
