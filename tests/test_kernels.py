@@ -496,6 +496,27 @@ def test_as_exact_uint8_none_for_other_dtypes_and_empty(x):
     assert kernels.as_exact_uint8(x) is None
 
 
+def test_as_exact_uint8_none_above_256_dimensions():
+    # the uint8 distance sums in float32: exact only while 255^2 * D < 2^24
+    assert kernels.as_exact_uint8(np.zeros((2, 256), np.float32)) is not None
+    assert kernels.as_exact_uint8(np.zeros((2, 257), np.float32)) is None
+
+
+@settings(max_examples=40, deadline=None)
+@given(d=st.integers(1, 256), seed=st.integers(0, 2**32 - 1), extreme=st.booleans())
+def test_uint8_distance_is_exact(d, seed, extreme):
+    """The byte-valued squared L2 inside the candidate kernel equals the int64 reference bit for bit, up to the
+    largest value (0 vs 255 in every one of 256 dimensions: 16,646,400)."""
+    rng = np.random.default_rng(seed)
+    a = np.zeros((1, d), np.uint8) if extreme else rng.integers(0, 256, (1, d), dtype=np.uint8)
+    b = np.full((1, d), 255, np.uint8) if extreme else rng.integers(0, 256, (1, d), dtype=np.uint8)
+    S = kernels.build_strips(np.zeros((1, 2)), 64.0)
+    _, d1, _, _, n = kernels.guided_top2(np.zeros(1, np.int64), a, b, np.zeros((1, 3)), False, 1.0,
+                                          np.full(1, -1.0), np.full(1, 1.0), S, S)
+    ref = int(((a.astype(np.int64) - b.astype(np.int64)) ** 2).sum())
+    assert n[0] == 1 and float(d1[0]) == ref
+
+
 # --------------------------------------------------------------------------- DenseKnn2
 def _blas_threads():
     return [(i["filepath"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"]

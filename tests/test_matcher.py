@@ -719,7 +719,10 @@ def test_frame_hypotheses_recover_a_low_inlier_ratio_pair(monkeypatch):
     bf = match(f1, f2, "bf")
     assert len(bf) > 3000 and correct(bf) == n_true  # 12 % of brute force's matches are right
     off = match(f1, f2, "so+epi+ia", MatcherConfig(frame_hypotheses=False))
-    assert off.geometry.verdict == "no-overlap" and len(off) == 0  # the failure
+    # the failure: RANSAC over 12 %-correct evidence finds nothing strong enough to guide -- no-overlap, or (when a
+    # late 1000-draw check happens to hit the F) unguided matches that are mostly wrong
+    assert not any(c["strong"] for c in off.stats.details["verdict_checks"][:-1])
+    assert off.geometry.verdict == "no-overlap" or correct(off) < 0.5 * len(off)
     on = match(f1, f2, "so+epi+ia")
     assert on.geometry.verdict == "verified" and on.geometry.model == "F"
     assert any(c["verdict"] == "verified" for c in on.stats.details["verdict_checks"])

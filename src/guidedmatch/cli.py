@@ -468,7 +468,13 @@ def _collection_config(args, log_default: Path):
     if args.threads is not None and (args.workers or args.scheduler):
         raise ConfigError("--threads is for in-process runs; with --workers N / --scheduler each worker runs one pair "
                           "at a time")
-    return CollectionConfig(mode=args.mode, matcher=matcher_config(args.config), workers=args.workers,
+    from .collection.engine import collection_matcher_config
+
+    try:
+        matcher = collection_matcher_config(_parse_kv(args.config, "--config"))
+    except ConfigError as exc:
+        raise ConfigError(f"bad --config: {exc}") from None
+    return CollectionConfig(mode=args.mode, matcher=matcher, workers=args.workers,
                             threads=args.threads, scheduler=args.scheduler, retries=args.retries, progress=not args.no_progress,
                             log_path=None if str(log).lower() == "none" else log)
 

@@ -62,24 +62,29 @@ def _l2sq(a, b):
     return s
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True, fastmath={"reassoc", "contract"})
 def _l2sq_u8(a, b):
-    # exact squared L2 of byte-valued descriptors (e.g. SIFT, integers 0..255): int32 accumulation
-    s = np.int32(0)
+    # exact squared L2 of byte-valued descriptors (e.g. SIFT, integers 0..255), summed in float32: every term and
+    # partial sum is an integer below 2^24 (at most 255^2 * 256 = 16,646,400 for up to 256 dimensions), so any order
+    # of summation -- the vectorized one 'reassoc' allows -- gives the exact value. Numba promotes int32 arithmetic to
+    # int64 lanes (4 per AVX2 register): 16 ns per 128-D distance vs 11 ns here. Not inlined at Numba-IR level, so
+    # the fast-math flags stay on these instructions only (LLVM inlines it; the kernels' band test stays IEEE).
+    s = np.float32(0.0)
     for k in range(a.shape[0]):
-        d = np.int32(a[k]) - np.int32(b[k])
+        d = np.float32(a[k]) - np.float32(b[k])
         s += d * d
-    return np.float32(s)
+    return s
 
 
 def as_exact_uint8(desc: np.ndarray) -> np.ndarray | None:
     """``desc`` as uint8 when every value is an integer in 0..255 (OpenCV SIFT), else None.
 
-    Squared L2 of such descriptors is computed exactly in int32 on a quarter of the memory traffic.
+    Squared L2 of such descriptors is computed exactly (float32 sums of integers < 2^24) on a quarter of the memory
+    traffic.
     One pass, stopping at the first value that does not fit.
     """
-    if desc.dtype != np.float32 or desc.size == 0 or desc.ndim != 2:
-        return None
+    if desc.dtype != np.float32 or desc.size == 0 or desc.ndim != 2 or desc.shape[1] > 256:
+        return None  # > 256 dimensions: the float32 sum of _l2sq_u8 could exceed 2^24 and round
     out = np.empty(desc.shape, np.uint8)
     return out if _to_uint8_exact(np.ascontiguousarray(desc), out) else None
 

@@ -43,7 +43,8 @@ class PreparedConfig:
     index: str = "ivf"                # approximate index of float descriptors: "ivf" (faiss IVF; 8-bit codes when byte-valued) or "none"
     nlist_factor: float = 2.0         # IVF cells = nlist_factor * sqrt(N) (COLMAP: 4; 2 as fast, same verdicts)
     nprobe: int = 4                   # IVF cells searched per query
-    train_per_list: int = 40          # k-means trained on at most this many descriptors per cell (faiss wants >= 39)
+    train_per_list: int = 20          # k-means trained on at most this many descriptors per cell (40: builds 1.6x
+                                      # slower, same verdicts and GT inliers within 0.3 %: docs/pairs.md)
     kmeans_iters: int = 8             # k-means iterations of the IVF training (4 builds 40 % faster, loses pairs: docs/pairs.md)
     min_features: int = 1024          # smaller images get no index (exact search is cheaper than building one)
     seed: int = 0                     # seeds the training subsample and k-means
@@ -125,8 +126,8 @@ class PreparedImage:
     def build_comparisons(self) -> int:
         """Distance evaluations of building the index (0 without one): k-means assigns the training sample to the
         ``nlist`` centroids ``kmeans_iters`` times, then every descriptor is assigned once -- the price the unguided
-        start's ski-rental compares with exact search (measured on Herz-Jesus ~40k SIFT: 67 M, built in 0.27 s CPU,
-        about what 1700 exact GEMM queries of 40k comparisons cost)."""
+        start's ski-rental compares with exact search (Herz-Jesus ~40k SIFT: 45 M with the defaults, 67 M with 40 per cell
+        = 1700 exact queries of 40k comparisons)."""
         if not self.has_index:
             return 0
         c, n, nlist = self.config, len(self), self.nlist

@@ -407,14 +407,13 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     from .collection.pairs import pairs_from_spec
     from .collection.sinks import ColmapSink
     from .collection.sources import ColmapSource
-    from .config import MatcherConfig
 
     t0 = time.perf_counter()
     source = ColmapSource(paths.database)
     try:
         pair_list = pairs_from_spec(conf.pairs, [n for n in source.names() if n in set(names)])
         _say(conf, f"[2/3] matching ({conf.mode}, geometry {conf.geometry}): {len(pair_list.pairs)} pairs ({conf.pairs})")
-        cconf = CollectionConfig(mode=conf.mode, matcher=MatcherConfig(**(conf.matcher or {})), workers=conf.workers,
+        cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
                                  scheduler=conf.scheduler, progress=conf.progress, log_path=str(paths.pair_log))
         with ColmapSink(paths.database, geometry=conf.geometry) as sink:
             report = match_collection(source, pair_list.pairs, sink, cconf)

@@ -563,6 +563,11 @@ def pair_tables(rows: list[dict]) -> str:
     return "\n".join(t1) + "\n\n" + "\n".join(t2)
 
 
+def _changes(res: dict) -> str:
+    ch = res.get("set_config_changes") or {}
+    return ", ".join(f"`{k}={v}`" for k, v in ch.items()) or "none"
+
+
 def _targets_md(ts: list[dict]) -> str:
     lines = ["| target (so+epi+ia) | measured | met |", "|---|---|---|"]
     lines += [f"| {t['target']} | {t['value']} | {'yes' if t['ok'] else '**no**'} |" for t in ts]
@@ -603,7 +608,11 @@ def write_report(out: Path, res: dict, command: str) -> Path:
             md += [f"Our modes were given prepared images (`guidedmatch.prepared.prepare` and its approximate index "
                    f"built once per image, as the IVF-SQ8 peer's index): {tot_prep:.2f} s in all, not in the "
                    f"so+epi+ia / epi times, amortized over each image's pairs in the '+ prepare amortized' row "
-                   f"(index builds left inside a match: {lazy:.2f} s).", ""]
+                   f"(index builds left inside a match: {lazy:.2f} s). With prepared images our modes run with the "
+                   f"settings of a collection run (`guidedmatch colmap` / `hloc`): `MatcherConfig` defaults except "
+                   f"{_changes(res)} (`guidedmatch.collection.engine.COLLECTION_MATCHER_DEFAULTS`: the index is "
+                   f"searched from the first query; a one-off `match` first rents exact search, docs/collections.md).",
+                   ""]
         if unrel:
             md += [f"### Totals over the {len(unrel)} unrelated pairs ({SCENE} image vs an Unsplash photo, long side "
                    f"{s['features']['unrelated_long_side']} px, its {s['features'].get('unrelated_photo_cap', 0):,} "
@@ -716,7 +725,11 @@ def main(args) -> int:
     if which not in ("8192", "0.01", "both", "none"):
         raise ConfigError(f"bench pairs --features takes 8192, 0.01, both or none; got {which!r}")
     sets = FEATURE_SETS if which == "both" else (() if which == "none" else (which,))
-    config = MatcherConfig()
+    config = MatcherConfig()  # one-off pairs: --dense, --oxford
+    from ..collection.engine import COLLECTION_MATCHER_DEFAULTS, collection_matcher_config
+
+    # prepared images (every image indexed once for all its pairs) are what a collection run matches: its settings
+    set_config = collection_matcher_config() if _prepare_fn() is not None else config
     command = ("guidedmatch bench pairs" + (" --quick" if quick else "") + f" --features {which}"
                + (" --dense" if getattr(args, "dense", False) else "") + (" --oxford" if getattr(args, "oxford", False) else "")
                + f" --repeats {repeats} --out {args.out}")
@@ -731,9 +744,10 @@ def main(args) -> int:
     meta = run_metadata(seed=getattr(args, "seed", 0))
     res: dict[str, Any] = dict(command=command, meta=meta, quick=quick, repeats=repeats,
                                machine_note=machine_note(meta), config=dataclasses.asdict(config),
-                               sets={})
+                               set_config=dataclasses.asdict(set_config),
+                               set_config_changes=dict(COLLECTION_MATCHER_DEFAULTS), sets={})
     for name in sets:
-        s = run_set(name, root, out, quick=quick, repeats=repeats, config=config)
+        s = run_set(name, root, out, quick=quick, repeats=repeats, config=set_config)
         scene = [r for r in s["rows"] if not r["unrelated"]]
         unrel = [r for r in s["rows"] if r["unrelated"]]
         s["totals"] = dict(scene=totals(scene), unrelated=totals(unrel))

@@ -94,12 +94,11 @@ def match_ours(db: Path, mode: str, geometry: str, threads: int, matcher: dict |
     from ..collection.pairs import exhaustive_pairs
     from ..collection.sinks import ColmapSink
     from ..collection.sources import ColmapSource
-    from ..config import MatcherConfig
 
     source = ColmapSource(db)
     try:
         pairs = exhaustive_pairs(source.names())
-        conf = CollectionConfig(mode=mode, matcher=MatcherConfig(**(matcher or {})), workers=workers, progress=False)
+        conf = CollectionConfig(mode=mode, matcher=dict(matcher or {}), workers=workers, progress=False)
         t0 = time.perf_counter()
         with ColmapSink(db, geometry=geometry) as sink:
             report = match_collection(source, pairs.pairs, sink, conf)
