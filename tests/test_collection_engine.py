@@ -272,16 +272,26 @@ def test_duplicate_reversed_and_self_pairs_are_dropped_and_reported(views):
 def test_plan_tasks_covers_each_pair_once_grouped_by_anchor(raw, chunk):
     names = [f"im{i}" for i in range(8)]
     pairs = [(names[a], names[b]) for a, b in raw]
-    plan = plan_tasks(pairs, names, chunk)
-    got = [p for tasks in plan.values() for t in tasks for p in t]
-    assert sorted(got) == sorted(pairs)
-    assert list(plan) == sorted(plan, key=names.index)
-    for anchor, tasks in plan.items():
-        for t in tasks:
-            assert 1 <= len(t) <= chunk
-            for a, b in t:
-                assert anchor in (a, b) and names.index(anchor) == min(names.index(a), names.index(b))
-        assert all(len(t) == chunk for t in list(tasks)[:-1])  # only an anchor's last task is short
+    for how in ("first", "second"):
+        plan = plan_tasks(pairs, names, chunk, anchor=how)
+        got = [p for tasks in plan.values() for t in tasks for p in t]
+        assert sorted(got) == sorted(pairs)
+        size = {k: sum(map(len, v)) for k, v in plan.items()}
+        if how == "first":
+            assert list(plan) == sorted(plan, key=names.index)
+        else:  # most pairs first, ties in source order
+            assert list(plan) == sorted(plan, key=lambda k: (-size[k], names.index(k)))
+        for anchor, tasks in plan.items():
+            for t in tasks:
+                assert 1 <= len(t) <= chunk
+                for a, b in t:
+                    if how == "first":
+                        assert anchor in (a, b) and names.index(anchor) == min(names.index(a), names.index(b))
+                    else:
+                        assert anchor == b  # the indexed image
+            assert all(len(t) == chunk for t in list(tasks)[:-1])  # only an anchor's last task is short
+    with pytest.raises(ValueError, match="anchor"):
+        plan_tasks(pairs, names, chunk, anchor="middle")
 
 
 @settings(max_examples=60, deadline=None)
