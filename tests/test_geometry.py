@@ -3,6 +3,7 @@ case (correspondences sharing no geometry), repeated-texture clusters, and rende
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
+from hypothesis.extra.numpy import arrays
 
 from guidedmatch.geometry import VERDICTS, TwoViewGeometry, VerdictConfig, random_inlier_bound, two_view_geometry
 from guidedmatch.testing.twoview import general_pair
@@ -322,3 +323,14 @@ def test_second_search_only_skips_the_all_evidence_fit(seed, monkeypatch):
     assert again and again.evidence["F_inliers"] >= easy.evidence["F_inliers"]
     with pytest.raises(ValueError, match="second_search"):
         two_view_geometry(x1, x2, size, size, cfg, second_search="always")
+
+
+@settings(max_examples=80, deadline=None)
+@given(arrays(np.float64, st.tuples(st.integers(0, 60), st.just(2)),
+              elements=st.one_of(st.floats(-5000, 5000), st.sampled_from([0.0, 0.74, 0.75, 0.76, 1.5, -0.75]))),
+       st.sampled_from([0.5, 0.75, 1.5]))
+def test_distinct_cells_equals_rowwise_unique(pts, q):
+    from guidedmatch.geometry import _distinct_cells
+
+    ref = len(np.unique(np.round(pts / q), axis=0)) if len(pts) else 0
+    assert _distinct_cells(pts, q) == ref

@@ -98,3 +98,24 @@ def test_small_image_has_no_index():
 def test_config_validation(kw):
     with pytest.raises(ConfigError):
         PreparedConfig(**kw)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_prepared_non_finite_descriptors_are_still_refused(bad):
+    """match() skips its NaN/inf scan only for prepared images whose squared norms are finite."""
+    import guidedmatch as gm
+    from guidedmatch.errors import InputError
+    from guidedmatch.features import Features
+
+    rng = np.random.default_rng(0)
+    d = rng.integers(0, 255, (300, 32)).astype(np.float32)
+    good = prepare(Features(rng.uniform(0, 100, (300, 2)), d, (100, 100)))
+    assert good.finite
+    f2 = Features(rng.uniform(0, 100, (300, 2)), d.copy(), (100, 100))  # Features refuses NaN/inf when built;
+    f2.descriptors[7, 3] = bad                                         # an array changed in place afterwards
+    p = prepare(f2)
+    assert not p.finite
+    with pytest.raises(InputError, match="NaN/inf"):
+        gm.match(good, p)
+    with pytest.raises(InputError, match="NaN/inf"):
+        gm.match(p, good)

@@ -85,7 +85,10 @@ def pairs_headline(res: dict, link: str = "benchmarks/results/pairs/pairs.md") -
     out += ["", f"(`{res.get('command', 'guidedmatch bench pairs')}`, commit `{str(meta.get('git_commit'))[:10]}`"
             f"{' + local changes' if meta.get('git_dirty') else ''}, {str(meta.get('timestamp_utc', ''))[:16]} UTC, "
             f"{meta.get('cpu_model')}, {res.get('machine_note', '2 cores shared with other jobs: times are noisy, same-run ratios hold')}. Matching only, "
-            f"detection excluded; GT inliers = symmetric epipolar distance < 3 px under the GT cameras; {verdict}. "
+            f"detection excluded; GT inliers = symmetric epipolar distance < 3 px under the GT cameras; {verdict}"
+            + (f"; guidedmatch rows: prepared images with the settings of a collection run ("
+               + ", ".join(f"`{k}={v}`" for k, v in res["set_config_changes"].items()) + ")"
+               if res.get("set_config_changes") else "") + ". "
             f"Per pair, targets and the plot against the camera angle: [{link}]({link}).)", PAIRS_END]
     return "\n".join(out)
 

@@ -33,10 +33,12 @@ DEFAULT_MEMORY_BUDGET_MB = 256.0
 SERIAL_TOP2_ROWS = 256  # GEMM blocks with fewer query rows are reduced single-threaded (see kernels.top2_gemm_serial)
 
 
-def check_descriptors(d1: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+def check_descriptors(d1: np.ndarray, d2: np.ndarray, *, known_finite: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:
     """Validate two descriptor arrays; returns them contiguous plus ``binary`` (uint8 = Hamming).
 
     Raises :class:`~guidedmatch.errors.InputError` on dimension or dtype mismatch, wrong rank, or NaN/inf.
+    ``known_finite``: the caller has already established that every value is finite (prepared images: their squared
+    norms are finite), so the NaN/inf scan is skipped.
     """
     d1 = np.asarray(d1)
     d2 = np.asarray(d2)
@@ -51,7 +53,7 @@ def check_descriptors(d1: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, np.nd
     if not b1:
         d1 = np.ascontiguousarray(d1, dtype=np.float32)
         d2 = np.ascontiguousarray(d2, dtype=np.float32)
-        if not (np.all(np.isfinite(d1)) and np.all(np.isfinite(d2))):
+        if not known_finite and not (np.all(np.isfinite(d1)) and np.all(np.isfinite(d2))):
             raise InputError("descriptors contain NaN/inf")
     return np.ascontiguousarray(d1), np.ascontiguousarray(d2), b1
 

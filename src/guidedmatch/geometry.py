@@ -268,9 +268,19 @@ def _independent_inliers(x1, x2, inl, F, threshold, size1, size2) -> int:
     if not keep.any():
         return 0
     q = max(float(threshold) / 2.0, 0.5)  # positions closer than this are one point
-    n1 = len(np.unique(np.round(a[keep] / q), axis=0))
-    n2 = len(np.unique(np.round(b[keep] / q), axis=0))
-    return int(min(n1, n2))
+    return int(min(_distinct_cells(a[keep], q), _distinct_cells(b[keep], q)))
+
+
+def _distinct_cells(pts: np.ndarray, q: float) -> int:
+    """Distinct rows of ``round(pts / q)`` (``len(np.unique(..., axis=0))``, via one int64 key per row: 1-D unique is
+    ~10x faster than the row-wise one on the verdict's 30-150 points)."""
+    if len(pts) == 0:
+        return 0
+    r = np.round(pts / q)
+    if not np.all(np.isfinite(r)) or np.abs(r).max() >= 2**30:  # keys would overflow: the row-wise reference
+        return len(np.unique(r, axis=0))
+    c = r.astype(np.int64) + 2**30
+    return len(np.unique(c[:, 0] * 2**31 + c[:, 1]))
 
 
 def consistent_frames(angles1, angles2, tolerance_deg: float = 20.0) -> np.ndarray | None:

@@ -143,7 +143,8 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     p2 = features2 if isinstance(features2, PreparedImage) else None
     f1 = p1.features if p1 is not None else as_features(features1, "features1")
     f2 = p2.features if p2 is not None else as_features(features2, "features2")
-    d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors)
+    d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors,
+                                       known_finite=p1 is not None and p2 is not None and p1.finite and p2.finite)
     with compile_monitor() as jit:  # a first call compiles Numba kernels: reported apart from time_s
         why = _bf_wins(config, len(d1), len(d2), binary) if mode.guided else None
         run = None if not mode.guided or why else _GuidedRun(config, mode, p1 or prepare(f1), p2 or prepare(f2),

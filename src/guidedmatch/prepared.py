@@ -70,6 +70,7 @@ class PreparedImage:
             copies of byte-valued float descriptors (OpenCV SIFT), else ``(N, D) float32``.
         byte_exact: ``kdesc`` is the exact uint8 copy.
         sqnorms: ``(N,) float32`` squared L2 norms of float descriptors (None for binary).
+        finite: every descriptor value is known to be finite (binary, or all ``sqnorms`` finite).
         config: the :class:`PreparedConfig`.
     """
 
@@ -89,6 +90,9 @@ class PreparedImage:
             self.byte_exact = u8 is not None
             self.kdesc = u8 if u8 is not None else d
             self.sqnorms = np.einsum("ij,ij->i", d, d).astype(np.float32)
+        # finite squared norms imply finite values (a NaN/inf value makes its row's sum NaN/inf); match() then skips
+        # its NaN/inf scan of these descriptors (False only costs that scan, e.g. values too large to square)
+        self.finite = True if self.binary else bool(np.isfinite(self.sqnorms).all())
         self._index = None
         self._lock = threading.Lock()
         self.index_build_s = 0.0
