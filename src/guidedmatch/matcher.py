@@ -482,7 +482,9 @@ class _GuidedRun:
         o = np.argsort(q, kind="stable")
         q, j, d = q[o], j[o], d[o]
         flags = {k: v[o] for k, v in flags.items()}
-        flags["so_prob"] = self.so_probabilities(models, q, j)
+        dropped = (self.c.unverified == "drop" and self.decision is not None
+                   and self.decision.verdict == "no-overlap")  # result() returns none of them: nothing to score
+        flags["so_prob"] = np.full(len(q), np.nan, np.float32) if dropped else self.so_probabilities(models, q, j)
         return self.result(t_start, models, q, j, d, flags, dropped_recheck, dropped_o2o, dropped_mutual)
 
     def draw_order(self) -> np.ndarray:
