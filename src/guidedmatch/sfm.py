@@ -31,6 +31,7 @@ import math
 import os
 import shutil
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -202,12 +203,19 @@ def check_images(image_dir: str | os.PathLike) -> tuple[list[str], list[dict]]:
     except AttributeError:  # pragma: no cover - OpenCV builds without the logging module
         old_level = None
     try:
-        for n in names:
+        from concurrent.futures import ThreadPoolExecutor
+
+        def readable(n: str) -> bool:
             img = cv2.imread(str(root / n), cv2.IMREAD_REDUCED_GRAYSCALE_8)
-            if img is None or img.size == 0:
-                skipped.append({"name": n, "reason": "unreadable (OpenCV cannot decode it)"})
-            else:
+            return img is not None and img.size > 0
+
+        with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:  # imread releases the GIL
+            ok = list(pool.map(readable, names))
+        for n, r in zip(names, ok):
+            if r:
                 good.append(n)
+            else:
+                skipped.append({"name": n, "reason": "unreadable (OpenCV cannot decode it)"})
     finally:
         if old_level is not None:
             cv2.utils.logging.setLogLevel(old_level)
@@ -661,7 +669,26 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     if len(names) < 2:
         raise InputError(f"fewer than 2 images with features in {paths.image_dir}; nothing to match")
     matching = match_main(conf, paths, names)
-    mapping = map_main(conf, paths)
+    # the report's bookkeeping (run metadata, per-pair table, the plotting library's import: ~0.5 s) runs in a thread
+    # while the mapper works -- pycolmap releases the GIL and its mapping does not keep both cores busy
+    side: dict = {}
+
+    def bookkeeping() -> None:
+        try:
+            side["meta"] = run_metadata(conf.seed)
+            side["pairs"] = database_pair_stats(paths.database)
+            from .plots import _plt
+
+            _plt()
+        except Exception as exc:  # noqa: BLE001 - redone (and raised) in the main thread below
+            side["error"] = exc
+
+    helper = threading.Thread(target=bookkeeping, name="guidedmatch-sfm-report", daemon=True)
+    helper.start()
+    try:
+        mapping = map_main(conf, paths)
+    finally:
+        helper.join()
     best = mapping["models"][0] if mapping["models"] else None
     report = {"image_dir": str(paths.image_dir), "out_dir": str(paths.out_dir), "command": command,
               "config": dataclasses.asdict(conf), "num_images": len(names), "skipped_images": skipped,
@@ -669,8 +696,9 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
               "total_time_s": time.perf_counter() - t_start,
               "registered": best["registered"] if best else 0, "points3D": best["points3D"] if best else 0,
               "unregistered": sorted(set(names) - set(best["registered_names"])) if best else names,
-              "pairs": database_pair_stats(paths.database), "database": str(paths.database),
-              "sparse": str(paths.sparse / "0") if best else None, "figure": None, "meta": run_metadata(conf.seed)}
+              "pairs": side["pairs"] if "pairs" in side else database_pair_stats(paths.database),
+              "database": str(paths.database), "sparse": str(paths.sparse / "0") if best else None, "figure": None,
+              "meta": side["meta"] if "meta" in side else run_metadata(conf.seed)}
     if best:
         import pycolmap
 
