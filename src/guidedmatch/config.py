@@ -128,13 +128,15 @@ class MatcherConfig:
                                          # anyway): Herz-Jesus-P8, 28 + 5 pairs, the same matches as 1000 on all 33 at
                                          # 8192 and 31 of 33 at ~40k (the 2 others: more GT inliers); 4x cheaper checks
     max_unguided: float | None = None    # early "no-overlap" exit: stop when the unguided start has spent this fraction of
-                                         # N1*N2 comparisons without verified evidence; None: 0.025 with the approximate
-                                         # index of image 2, 0.5 with exact search (binary descriptors: no index)
+                                         # N1*N2 comparisons without verified evidence; None: 0.02 with the approximate
+                                         # index of image 2 (an index comparison costs ~3x a GEMM one: rejecting an
+                                         # unrelated 8192-feature pair in < 1/10 of brute force; 0.025 only kept one
+                                         # 16 %-correct weak pair, docs/pairs.md), 0.5 with exact search (binary: no index)
     unguided_index: bool = True          # unguided start (start="verified") searches a faiss IVF index of image 2
                                          # (guidedmatch.prepared; built once per image) instead of exact GEMM
     exact_rent: float = 0.18             # ski-rental: the unguided start searches exactly (GEMM) for its first queries,
                                          # up to min(index build cost, exact_rent * exit budget) comparisons (added to
-                                         # the budget: an unrelated pair stops at <= 2.5 * 1.18 < 3 % of N1*N2), then
+                                         # the budget: an unrelated pair stops at <= 2 * 1.18 < 3 % of N1*N2), then
                                          # the IVF index (built then if not prepared): ~40k SIFT adjacent Herz-Jesus
                                          # pairs are decided within that and never build one; no rent when it buys
                                          # fewer than max(batch_size, 2 first_check) queries (0: index first)

@@ -34,7 +34,7 @@ Flow of a guided match (:func:`match` -> :class:`_GuidedRun`, one method per ste
    model is fitted as soon as the verdict is "verified" (its F is the verdict's), so a model fitted on too little
    evidence never guides. With ``frame_hypotheses`` the verdict also searches the orientation-consistent subset of
    the evidence when RANSAC on all of it verifies nothing (low inlier ratio, geometry step 4). When the start has
-   spent ``max_unguided`` of N1*N2 comparisons (2.5 % with the index) plus the exact rent without a verified
+   spent ``max_unguided`` of N1*N2 comparisons (2 % with the index) plus the exact rent without a verified
    verdict, it stops: verdict "no-overlap" (or "too-few-matches"), the remaining features are not matched (fallback
    ``early_exit``). ``start="paper"`` (:meth:`MatcherConfig.paper`): the first model after ``update_every`` exact
    unguided correspondences, no gate, no exit.
@@ -560,7 +560,7 @@ class _GuidedRun:
         n1, n2 = len(self.d1), len(self.d2)
         paper = c.start == "paper"
         kind = UnguidedSearch.choose(self.p2, use_index=c.unguided_index and not paper)
-        frac = c.max_unguided if c.max_unguided is not None else (0.025 if kind == "ivf" else 0.5)
+        frac = c.max_unguided if c.max_unguided is not None else (0.02 if kind == "ivf" else 0.5)
         budget = frac * n1 * n2
         # ski-rental: exact search until it has cost what building the index costs (capped at exact_rent of the exit
         # budget), the index after -- the same rule whether or not image 2 was prepared, so the same matches
@@ -568,6 +568,7 @@ class _GuidedRun:
         if rent < max(c.batch_size, 2 * c.first_check) * n2:
             rent = 0.0  # too few exact queries to reach a first verdict check: pure overhead (8192 SIFT: 37 queries)
         budget += rent  # the rent is not taken from the index's evidence budget: the exit at <= (1 + exact_rent) frac
+        # (up to 1.25x that while fewer than 8 correspondences exist: no model could be tested on them yet)
         models = None
         total = ptr = 0
         next_check = max(c.first_check, c.min_model_matches)
@@ -587,7 +588,7 @@ class _GuidedRun:
                         n = max(n, min(4096, int(1.1 * (next_check - total) * ptr / total)))
                 if not paper and ptr:  # the last batch before the budget is cut to fit it (+ <= 8 queries)
                     left = (budget - self.unguided_comparisons) / max(search.per_query(), 1.0)
-                    n = int(min(n, max(8, np.ceil(left))))
+                    n = int(min(n, max(8, np.ceil(left)))) if left > 0 else min(n, 64)  # past it (< 8 found): 64 at a time
                 batch = order[ptr: ptr + n]
                 ptr += len(batch)
                 t0 = time.perf_counter()
@@ -615,6 +616,8 @@ class _GuidedRun:
                         break
                     next_check = max(next_check + 1, int(np.ceil(total * c.check_growth)))
                 if self.unguided_comparisons >= budget and ptr < len(order):
+                    if total < 8 and self.unguided_comparisons < 1.25 * budget:
+                        continue  # fewer than F's 8 correspondences: nothing could be tested yet; a little longer
                     self.early_exit = (f"unguided start spent {self.unguided_comparisons / max(n1 * n2, 1):.1%} of "
                                        f"N1*N2 ({budget / max(n1 * n2, 1):.1%} allowed) on {ptr} of {n1} features "
                                        f"without evidence strong enough to guide; the remaining {len(order) - ptr} "
