@@ -539,12 +539,17 @@ def _chunked(fn, n: int, min_rows: int, threads: int | None = None):
     return [first] + [f.result() for f in futures]
 
 
-def top2_gemm(dot, nn2, qn, write_back):
-    """:func:`top2_gemm_serial` on one chunk of rows per thread (large blocks); same arguments and results."""
-    parts = _chunked(lambda a, b: top2_gemm_serial(dot[a:b], nn2, qn[a:b], write_back), dot.shape[0], 256)
+def _chunked_rows(fn, n: int, min_rows: int):
+    """:func:`_chunked` for a kernel returning a tuple of per-row arrays: the chunks' arrays joined in row order."""
+    parts = _chunked(fn, n, min_rows)
     if len(parts) == 1:
         return parts[0]
-    return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts))
+
+
+def top2_gemm(dot, nn2, qn, write_back):
+    """:func:`top2_gemm_serial` on one chunk of rows per thread (large blocks); same arguments and results."""
+    return _chunked_rows(lambda a, b: top2_gemm_serial(dot[a:b], nn2, qn[a:b], write_back), dot.shape[0], 256)
 
 
 top2_gemm.__doc__ = (_top2_gemm_py.__doc__ or "") + """
@@ -564,24 +569,21 @@ def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, ro
     kernel = _guided_ser_fm if desc1.dtype.kind == "f" else _guided_ser
     use_band, band = bool(use_band), float(band)
     fc, fr = first_nonempty(cols), first_nonempty(rows)
-    parts = _chunked(lambda a, b: kernel(queries[a:b], desc1, desc2, lines[a:b], use_band, band, xlo[a:b], xhi[a:b],
-                                         cols, rows, fc, fr), len(queries), PARALLEL_MIN_QUERIES)
-    out = parts[0] if len(parts) == 1 else tuple(np.concatenate([p[k] for p in parts]) for k in range(6))
+    out = _chunked_rows(lambda a, b: kernel(queries[a:b], desc1, desc2, lines[a:b], use_band, band, xlo[a:b],
+                                            xhi[a:b], cols, rows, fc, fr), len(queries), PARALLEL_MIN_QUERIES)
     return out if return_visits else out[:5]
 
 
 def hamming_top2(q, t):
     """Brute-force Hamming top-2 of every query word row ``q (N1, W) uint64`` among ``t (N2, W)``: ``(i1, d1, i2,
     d2)``, distances in bits as float32 (not squared); one chunk of query rows per thread."""
-    parts = _chunked(lambda a, b: _hamming_top2(q[a:b], t), q.shape[0], 256)
-    return parts[0] if len(parts) == 1 else tuple(np.concatenate([p[k] for p in parts]) for k in range(4))
+    return _chunked_rows(lambda a, b: _hamming_top2(q[a:b], t), q.shape[0], 256)
 
 
 def hamming_col_best(q, t):
     """For every target row of ``t``: index of and Hamming distance (bits, float32) to its nearest query row
     (mutual check); one chunk of target rows per thread."""
-    parts = _chunked(lambda a, b: _hamming_col_best(q, t[a:b]), t.shape[0], 256)
-    return parts[0] if len(parts) == 1 else tuple(np.concatenate([p[k] for p in parts]) for k in range(2))
+    return _chunked_rows(lambda a, b: _hamming_col_best(q, t[a:b]), t.shape[0], 256)
 
 
 guided_top2.__doc__ = (_guided_py.__doc__ or "") + """

@@ -154,10 +154,15 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     return (res, run.guidance if run is not None else None) if return_models else res
 
 
+def _has_frames(c: MatcherConfig, f1, f2) -> bool:
+    """The verdict's second search can run: ``frame_hypotheses`` on and both images have detector orientations."""
+    return bool(c.frame_hypotheses) and f1.angles is not None and f2.angles is not None
+
+
 def _frames(c: MatcherConfig, f1, f2, q: np.ndarray, j: np.ndarray):
     """``(angles1[q], angles2[j])`` for the verdict's second search (``frame_hypotheses``), or None when off or
     either image has no detector orientations."""
-    if not c.frame_hypotheses or f1.angles is None or f2.angles is None:
+    if not _has_frames(c, f1, f2):
         return None
     return np.asarray(f1.angles)[q], np.asarray(f2.angles)[j]
 
@@ -659,7 +664,7 @@ class _GuidedRun:
         pairs, 8192 and ~40k SIFT: faster, and more GT inliers on both sets, docs/pairs.md)."""
         if self.c.verdict_iters >= 10000:
             return self.decision
-        if _frames(self.c, self.f1, self.f2, np.zeros(0, np.int64), np.zeros(0, np.int64)) is not None:
+        if _has_frames(self.c, self.f1, self.f2):
             return self.decide(got, second_search="only", second_iters=10000)
         return self.decide(got, 10000)
 
@@ -736,7 +741,6 @@ class _GuidedRun:
         self.last_alignment = None
         k1, k2 = self.f1.keypoints, self.f2.keypoints
         p1, p2 = k1[acc_i], k2[acc_j]
-        self.F_fit = None
         fr = self.fit_fundamental(p1, p2, verdict) if (self.mode.use_epi or self.mode.use_ia) else None
         F, inl = (fr.F, np.asarray(fr.inliers, bool)) if fr is not None else (None, None)
         al = self.fit_alignment(F, p1[inl], p2[inl]) if self.mode.use_ia and F is not None else None
@@ -756,7 +760,7 @@ class _GuidedRun:
         self.updates.append(ModelUpdate(
             update=len(self.updates) + 1, num_correspondences=int(len(acc_i)),
             F_inliers=int(fr.num_inliers) if fr is not None else None,
-            F_fit=self.F_fit if fr is not None else None,
+            F_fit=fr.stats.get("fit", "ransac") if fr is not None else None,
             focal=(float(foc.f1), float(foc.f2)) if foc is not None else None,
             focal_fallback=(bool(foc.fallback1), bool(foc.fallback2)) if foc is not None else None,
             roll_deg=float(al.roll_deg) if al is not None else None, H2=H2 if al is not None else None,
@@ -791,7 +795,6 @@ class _GuidedRun:
         from . import epipolar
 
         c = self.c
-        self.F_fit = "ransac"
         first = verdict is not None and c.frame_hypotheses and verdict.model == "F" and verdict.F is not None
         if first and _ransac_draws(verdict) > 10000:
             fr = self.refit_on_verdict(verdict, p1, p2, None)
@@ -819,8 +822,9 @@ class _GuidedRun:
 
     def refit_on_verdict(self, verdict, p1, p2, n_fresh):
         """F refitted (``ransac_method``) on the inliers of the verdict's F among ``p1 <-> p2``, kept when it has at
-        least the verdict F's independent inliers, else the verdict's F. ``n_fresh``: the support of a rejected
-        fresh fit (reported as a fallback), or None (no fresh fit: :meth:`fit_fundamental`'s low-ratio rule)."""
+        least the verdict F's independent inliers, else the verdict's F (``stats["fit"]``: ``"verdict inliers"`` /
+        ``"verdict"``, reported as ``ModelUpdate.F_fit``). ``n_fresh``: the support of a rejected fresh fit (reported
+        as a fallback), or None (no fresh fit: :meth:`fit_fundamental`'s low-ratio rule)."""
         from . import epipolar
         from .geometry import VerdictConfig, fundamental_support
 
@@ -832,10 +836,9 @@ class _GuidedRun:
         F, n_v = np.asarray(verdict.F, np.float64), fundamental_support(verdict.F, p1, p2, *sizes, vc)
         refit = epipolar.estimate_fundamental(p1[inl], p2[inl], method=c.ransac_method, threshold=c.ransac_threshold,
                                               seed=c.seed)
-        used, self.F_fit = "the verdict's F", "verdict"
+        used, fit = "the verdict's F", "verdict"
         if refit and fundamental_support(refit.F, p1, p2, *sizes, vc) >= n_v:
-            F, used = refit.F, f"F refitted on the verdict F's {int(inl.sum())} inliers"
-            self.F_fit = "verdict inliers"
+            F, used, fit = refit.F, f"F refitted on the verdict F's {int(inl.sum())} inliers", "verdict inliers"
         with np.errstate(invalid="ignore", divide="ignore"):
             mask = epipolar.sampson_distance(F, p1, p2) <= c.ransac_threshold
         if n_fresh is not None:
@@ -843,7 +846,7 @@ class _GuidedRun:
             self.fallback("fundamental", f"first F fitted on all {len(p1)} correspondences has {n_fresh} independent "
                           f"inliers (the verdict's F {n_v}, random bound {bound:.0f}): {used} guides")
         return epipolar.FundamentalResult(F, mask, int(mask.sum()), c.ransac_method, float(c.ransac_threshold),
-                                          dict(from_verdict=True, fresh_support=n_fresh, verdict_support=int(n_v)))
+                                          dict(fit=fit, fresh_support=n_fresh, verdict_support=int(n_v)))
 
     def fit_alignment(self, F, p1_in, p2_in):
         """§III-E: the alignment (``H1``, ``H2``, Bougnoux focal, roll) from F and its inliers for the ``alignment``

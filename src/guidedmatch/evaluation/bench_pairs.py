@@ -63,6 +63,8 @@ FLANN = dict(trees=4, checks=64)  # as benchmarks/bench_guided.py (the issue's F
 QUICK = dict(scale=0.5, pairs=("0000-0001", "0000-0005"), unrelated=1, cap={"8192": 2048, "0.01": 6000})
 DENSE_PAIR = ("0002", "0003")
 DENSE_CT = 0.002
+
+
 def machine_note(meta: dict) -> str:
     """What the load average said when the run started (``run_metadata()["load_average"]``; 2 cores: above ~1,
     other jobs were running)."""
