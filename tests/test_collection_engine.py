@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -135,7 +136,9 @@ def test_in_process_matches_every_pair_like_the_direct_calls(views, tmp_path):
     src, sink = DictSource(views), ListSink()
     pairs = all_pairs(src.names())
     log = tmp_path / "pairs.jsonl"
+    before = time.time()
     rep = match_collection(src, pairs, sink, CollectionConfig(progress=False, log_path=str(log), chunk_pairs=3))
+    after = time.time()
     assert rep.totals["backend"] == "in-process" and "auto" in rep.totals["backend_reason"]
     assert rep.done == len(pairs) == 10 and rep.skipped == 0 and rep.failed == []
     assert_same_as_reference(sink, views, pairs)
@@ -152,6 +155,8 @@ def test_in_process_matches_every_pair_like_the_direct_calls(views, tmp_path):
     assert [ln["event"] for ln in lines] == ["pair"] * 10 + ["summary"]
     assert {frozenset(ln["pair"]) for ln in lines[:-1]} == {frozenset(p) for p in pairs}
     assert all(ln["status"] == "done" and ln["verdict"] in VERDICTS for ln in lines[:-1])
+    # each pair's wall-clock interval (Unix time; load + match) lies within the call
+    assert all(before <= ln["t_start"] <= ln["t_end"] <= after for ln in lines[:-1])
     assert lines[-1]["done"] == 10 and lines[-1]["failed"] == []
     assert "10 matched" in rep.summary()
 

@@ -19,6 +19,7 @@ import numpy as np
 from . import __version__
 from .config import MODES, MatcherConfig
 from .errors import ConfigError, GuidedMatchError, InputError, OutputError
+from ._runtime import freeze_gc_at_exit
 from .features import writable_folder
 
 OUTPUT_FORMATS = (".npz", ".csv", ".json")
@@ -676,6 +677,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    freeze_gc_at_exit()  # a cheap interpreter shutdown (guidedmatch._runtime)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):

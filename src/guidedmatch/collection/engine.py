@@ -84,9 +84,10 @@ from typing import Any
 
 import numpy as np
 
+from .._runtime import freeze_gc_at_exit
+from ..config import MODES, MatcherConfig
 from ..errors import ConfigError, GuidedMatchError, InputError
 from ..geometry import TwoViewGeometry
-from ..config import MODES, MatcherConfig
 from ..validation import check_bool, check_choice, check_number, config_from
 
 __all__ = ["CollectionConfig", "CollectionReport", "PairOutcome", "match_collection", "plan_tasks",
@@ -324,6 +325,7 @@ def _worker_cache(source, spec: _TaskSpec) -> _ImageCache:
         if cache is None:
             if spec.single_thread:
                 _limit_threads()
+                freeze_gc_at_exit()  # a worker process of ours: its shutdown is part of the run's wall time
             cache = _RUNS[spec.run_id] = _ImageCache(source, spec)
         return cache
 
@@ -387,6 +389,7 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
     from ..matcher import match
 
     t0 = time.perf_counter()
+    wall0 = time.time()
     try:
         A = cache.get(a, (a, b))
         B = cache.get(b, (a, b))
@@ -401,7 +404,7 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
     stats = dict(n1=len(A.features), n2=len(B.features), matches=len(res), verdict=geom.verdict, model=geom.model,
                  inliers=int(geom.num_inliers), comparisons=getattr(st, "comparisons", None),
                  fallbacks=[f"{f.what}: {f.reason}" for f in getattr(st, "fallbacks", ())],
-                 load_s=t1 - t0, match_s=t2 - t1, worker=worker)
+                 load_s=t1 - t0, match_s=t2 - t1, worker=worker, t_start=wall0, t_end=wall0 + (t2 - t0))
     return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats)
 
 

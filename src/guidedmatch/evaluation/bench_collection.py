@@ -66,7 +66,9 @@ def _env() -> dict:
 
 
 def _timed(cmd: list[str], log: Path | None = None) -> dict:
-    """Run ``cmd`` as a fresh process; wall time, return code, last lines of output."""
+    """Run ``cmd`` as a fresh process; wall time, return code, last lines of output; with a per-pair ``log``: its
+    summary and the pairs' spans ``[worker, start, end]`` in seconds since the process was started (timeline)."""
+    unix0 = time.time()
     t0 = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True, env=_env())
     wall = time.perf_counter() - t0
@@ -74,6 +76,9 @@ def _timed(cmd: list[str], log: Path | None = None) -> dict:
                stdout_tail=r.stdout.strip().splitlines()[-8:], stderr_tail=r.stderr.strip().splitlines()[-3:])
     if log is not None and log.exists():
         lines = log.read_text().splitlines()
+        recs = [json.loads(x) for x in lines[:-1]]
+        out["spans"] = [[x.get("worker", "?"), round(x["t_start"] - unix0, 4), round(x["t_end"] - unix0, 4)]
+                        for x in recs if x.get("event") == "pair" and "t_start" in x]
         summary = json.loads(lines[-1]) if lines else {}
         out["summary"] = {k: summary.get(k) for k in ("done", "skipped", "failed", "wall_s", "backend", "workers",
                                                       "backend_reason", "matches", "inliers", "verified_pairs",
@@ -250,6 +255,7 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
         write_json(out_dir / "collection.json", result)
     (out_dir / "collection.md").write_text(markdown(result))
     figure(result, out_dir / "collection.png")
+    timeline_figure(result, out_dir / "timeline.png")
     return result
 
 
@@ -322,6 +328,78 @@ def figure(result: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _lanes(spans: list) -> list[int]:
+    """A lane per span: one per worker process; spans of in-process threads (one "worker") are put on the first lane
+    free at their start (greedy interval partitioning), which gives as many lanes as pairs ran at once.
+
+    >>> _lanes([["w1", 0, 2], ["w2", 0, 1], ["w1", 2, 3]])
+    [0, 1, 0]
+    >>> _lanes([["in-process", 0, 2], ["in-process", 0, 1], ["in-process", 1.5, 3]])
+    [0, 1, 1]
+    """
+    workers = sorted({w for w, _, _ in spans})
+    if len(workers) > 1 or (workers and workers[0] != "in-process"):
+        return [workers.index(w) for w, _, _ in spans]
+    free_at: list[float] = []
+    lanes = [0] * len(spans)
+    for i in sorted(range(len(spans)), key=lambda k: spans[k][1]):
+        start, end = spans[i][1], spans[i][2]
+        lane = next((j for j, t in enumerate(free_at) if t <= start + 1e-9), len(free_at))
+        if lane == len(free_at):
+            free_at.append(end)
+        else:
+            free_at[lane] = end
+        lanes[i] = lane
+    return lanes
+
+
+TIMELINE_RUNS = (("ours", "auto"), ("workers_0t1", "in-process, 1 thread"), ("workers_1", "1 local worker"),
+                 ("workers_2", "2 local workers"))
+
+
+def timeline_figure(result: dict, path: Path) -> Path | None:
+    """When each pair ran, per worker (or in-process thread), from the fresh process's start to its end: the grey
+    band before the first pair is start-up (imports, cluster start, the worker's own imports and Numba load), the
+    one after the last pair the tail (writes, cluster stop, exit)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [(name, key, label, row[key]) for name, row in result["sets"].items() for key, label in TIMELINE_RUNS
+              if key in row and row[key].get("spans") and not (key != "ours" and row[key].get("same_as"))]
+    if not panels:
+        return None
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 0.9 + 0.75 * len(panels)), squeeze=False)
+    colors = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+    for ax, (name, key, label, run) in zip(axes[:, 0], panels):
+        spans = run["spans"]
+        lanes = _lanes(spans)
+        first = min(s[1] for s in spans)
+        last = max(s[2] for s in spans)
+        for i, ((_, t0, t1), lane) in enumerate(zip(spans, lanes)):
+            ax.broken_barh([(t0, t1 - t0)], (lane - 0.4, 0.8), facecolors=colors[i % len(colors)], edgecolor="white",
+                           linewidth=0.5)
+        n = max(lanes) + 1
+        ax.axvspan(0, first, color="0.85", zorder=0)
+        ax.axvspan(last, run["wall_s"], color="0.85", zorder=0)
+        ax.set_xlim(0, run["wall_s"] * 1.01)
+        ax.set_ylim(-0.6, n - 0.4)
+        ax.set_yticks(range(n), [f"{'thread' if run['summary'].get('backend') == 'in-process' else 'worker'} {k + 1}"
+                                 for k in range(n)], fontsize=7)
+        ax.tick_params(axis="x", labelsize=7)
+        ax.set_title(f"{name} ({result['sets'][name]['features']['features_mean']:.0f} feat./image), {label}: "
+                     f"{run['wall_s']:.2f} s; first pair at {first:.2f} s, last done at {last:.2f} s",
+                     fontsize=8, loc="left")
+    axes[-1, 0].set_xlabel("seconds since the process started (grey: before the first pair / after the last)",
+                           fontsize=8)
+    fig.suptitle(f"guidedmatch colmap, Herz-Jesus-P8 pairs: one bar per pair ({result.get('note', '')})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,35 @@
+"""The collection benchmark's report pieces that need no data: the workers' timeline."""
+import matplotlib.image
+
+from guidedmatch.evaluation.bench_collection import _lanes, timeline_figure
+
+
+def _run(spans, wall, backend):
+    return dict(spans=spans, wall_s=wall, summary=dict(backend=backend))
+
+
+def test_lanes_give_every_worker_its_own_row_and_never_overlap_threads():
+    spans = [["in-process", 0.5, 1.0], ["in-process", 0.5, 0.8], ["in-process", 0.8, 1.2], ["in-process", 1.0, 1.1]]
+    lanes = _lanes(spans)
+    assert sorted(set(lanes)) == [0, 1]
+    for lane in set(lanes):  # within a lane, the spans follow one another
+        mine = sorted(s[1:] for s, k in zip(spans, lanes) if k == lane)
+        assert all(a[1] <= b[0] for a, b in zip(mine, mine[1:]))
+    workers = [["tcp://b", 0, 1], ["tcp://a", 0, 1], ["tcp://b", 1, 2]]
+    assert _lanes(workers) == [1, 0, 1]
+
+
+def test_timeline_figure_draws_one_panel_per_logged_run(tmp_path):
+    feats = dict(features_mean=11416.0)
+    result = dict(note="test", sets=dict(default=dict(
+        features=feats,
+        ours=_run([["in-process", 0.5, 0.9], ["in-process", 0.5, 0.7], ["in-process", 0.7, 1.1]], 1.3, "in-process"),
+        workers_1=_run([["tcp://a", 1.5, 2.0], ["tcp://a", 2.0, 2.6]], 2.9, "local-cluster"),
+        workers_2=_run([["tcp://a", 1.4, 2.0], ["tcp://b", 1.4, 1.9]], 2.3, "local-cluster"),
+        workers_0=dict(same_as="auto", spans=[["in-process", 0, 1]], wall_s=1.0, summary={}))))
+    out = timeline_figure(result, tmp_path / "timeline.png")
+    assert out == tmp_path / "timeline.png"
+    img = matplotlib.image.imread(out)
+    assert img.shape[0] > 300 and img.shape[1] > 800  # three panels (the "same as auto" run is not drawn twice)
+    assert timeline_figure(dict(note="", sets=dict(default=dict(features=feats))), tmp_path / "none.png") is None
+    assert not (tmp_path / "none.png").exists()
