@@ -94,3 +94,28 @@ def test_colmap_baseline_on_rendered_scene(tmp_path):
     assert res2["extraction"]["8192"]["cached"] is True
     assert [r["method"] for r in res2["rows"]] == ["colmap", "colmap_guided"]
     assert res2["rows"][0]["timestamp_utc"] == row["timestamp_utc"]
+
+
+def test_end_to_end_repeats_alternate_the_order_and_report_medians(monkeypatch, tmp_path):
+    calls = []
+    totals = {"ours": iter([30.0, 36.0, 33.0]), "colmap": iter([34.0, 32.0, 33.5])}
+
+    def fake(who):
+        def run(image_dir, gt, work, threads, seed):
+            calls.append(who)
+            t = next(totals[who])
+            return dict(pipeline=who, total_s=t, extraction_s=t - 5, matching_s=1.0 if who == "ours" else 3.0,
+                        mapping_s=4.0, verified_inliers=7, registered=8, points3D=int(t * 100),
+                        median_pose_error_deg=0.2, auc={"1": 0.7})
+        return run
+
+    monkeypatch.setattr(bench_sfm, "_e2e_ours", fake("ours"))
+    monkeypatch.setattr(bench_sfm, "_e2e_colmap", fake("colmap"))
+    rows = bench_sfm.end_to_end(tmp_path, {}, tmp_path, 2, 0, repeats=3)
+    assert calls == ["ours", "colmap", "colmap", "ours", "ours", "colmap"]
+    ours, colmap = rows
+    assert ours["total_s"] == 33.0 and colmap["total_s"] == 33.5
+    assert ours["points3D"] == 3300  # the model of the median run
+    assert [r["total_s"] for r in ours["runs"]] == [30.0, 36.0, 33.0]
+    assert ours["extraction_s"] == 28.0 and colmap["matching_s"] == 3.0
+    assert "(30.0-36.0, 3 runs)" in bench_sfm.e2e_table(rows)

@@ -614,7 +614,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
-    b.add_argument("--repeats", type=_positive_int, default=None, help="timing repeats per method (median)")
+    b.add_argument("--repeats", type=_positive_int, default=None,
+                   help="timing repeats per method (median); sfm: runs of each end-to-end pipeline (median, "
+                        "alternating order)")
     b.add_argument("--detector", default="sift", choices=DETECTORS)
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--scene", default=None, help="sfm: scene folder with images/ and gt_dense_cameras/ (Strecha "
