@@ -246,6 +246,15 @@ def _prepare_fn():
     return prepare
 
 
+def _has_prepared() -> bool:
+    """Whether ``guidedmatch.prepared`` exists, without importing it: importing it imports Numba (~0.15 s), which a
+    client that only schedules and writes never needs (that import had been 0.15 s of the end of every cluster run).
+    """
+    import importlib.util
+
+    return importlib.util.find_spec("guidedmatch.prepared") is not None
+
+
 def _nbytes(obj) -> int:
     n = getattr(obj, "nbytes", None)
     if isinstance(n, (int, np.integer)):
@@ -385,6 +394,18 @@ class PairOutcome:
     stats: dict = field(default_factory=dict)
 
 
+def _fallback_text(f) -> str:
+    """A matcher :class:`~guidedmatch.results.Fallback` as one log string; the model update it happened at is named
+    (the same step can degrade at several updates, e.g. an unusable Bougnoux focal at updates 1 and 2).
+
+    >>> from guidedmatch.results import Fallback
+    >>> _fallback_text(Fallback("focal1", "f = w + h used", 2)), _fallback_text(Fallback("early_exit", "budget"))
+    ('focal1 (model update 2): f = w + h used', 'early_exit: budget')
+    """
+    at = getattr(f, "at_update", 0)
+    return f"{f.what}{f' (model update {at})' if at else ''}: {f.reason}"
+
+
 def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str) -> PairOutcome:
     from ..matcher import match
 
@@ -403,7 +424,7 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
     st = res.stats
     stats = dict(n1=len(A.features), n2=len(B.features), matches=len(res), verdict=geom.verdict, model=geom.model,
                  inliers=int(geom.num_inliers), comparisons=getattr(st, "comparisons", None),
-                 fallbacks=[f"{f.what}: {f.reason}" for f in getattr(st, "fallbacks", ())],
+                 fallbacks=[_fallback_text(f) for f in getattr(st, "fallbacks", ())],
                  load_s=t1 - t0, match_s=t2 - t1, worker=worker, t_start=wall0, t_end=wall0 + (t2 - t0))
     return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats)
 
@@ -933,7 +954,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                   pairs_per_s=writer.done / wall if wall > 0 else 0.0, chunk_pairs=chunk,
                   max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process"
                   else (1 if facts.get("threads", 1) <= 1 else 2 * facts["threads"]),
-                  cache_mb=cfg.cache_mb, prepared=_prepare_fn() is not None,
+                  cache_mb=cfg.cache_mb, prepared=_has_prepared(),
                   retried=sum(1 for k, v in writer.attempts.items() if v > 1))
     report = CollectionReport(writer.done, skipped, writer.failed, writer.per_pair, totals, wall)
     if log is not None:
