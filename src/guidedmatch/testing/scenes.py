@@ -31,9 +31,15 @@ def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def fundamental_from_pose(K1, K2, R, t) -> np.ndarray:
-    """``F = K2^-T [t]_x R K1^-1`` (``X2 = R X1 + t``), scaled to unit Frobenius norm."""
+    """``F = K2^-T [t]_x R K1^-1`` (``X2 = R X1 + t``), scaled to unit Frobenius norm; all zeros when ``t = 0``
+    (a pure rotation: no epipolar geometry, as in :mod:`guidedmatch.testing.twoview`).
+
+    >>> fundamental_from_pose(np.eye(3), np.eye(3), np.eye(3), np.zeros(3)).any()
+    False
+    """
     F = np.linalg.inv(K2).T @ skew(np.asarray(t, float).ravel()) @ R @ np.linalg.inv(K1)
-    return F / np.linalg.norm(F)
+    norm = np.linalg.norm(F)
+    return F / norm if norm > 0 else np.zeros((3, 3))
 
 
 def procedural_texture(width: int, height: int, rng: np.random.Generator) -> np.ndarray:
