@@ -34,7 +34,7 @@ def fundamental_from_pose(K1, K2, R, t) -> np.ndarray:
     """``F = K2^-T [t]_x R K1^-1`` (``X2 = R X1 + t``), scaled to unit Frobenius norm; all zeros when ``t = 0``
     (a pure rotation: no epipolar geometry, as in :mod:`guidedmatch.testing.twoview`).
 
-    >>> fundamental_from_pose(np.eye(3), np.eye(3), np.eye(3), np.zeros(3)).any()
+    >>> bool(fundamental_from_pose(np.eye(3), np.eye(3), np.eye(3), np.zeros(3)).any())
     False
     """
     F = np.linalg.inv(K2).T @ skew(np.asarray(t, float).ravel()) @ R @ np.linalg.inv(K1)
