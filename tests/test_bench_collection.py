@@ -1,7 +1,8 @@
 """The collection benchmark's report pieces that need no data: the workers' timeline."""
 import matplotlib.image
 
-from guidedmatch.evaluation.bench_collection import _lanes, timeline_figure
+from guidedmatch.evaluation.bench_collection import timeline_figure
+from guidedmatch.plots import timeline_lanes
 
 
 def _run(spans, wall, backend):
@@ -10,13 +11,13 @@ def _run(spans, wall, backend):
 
 def test_lanes_give_every_worker_its_own_row_and_never_overlap_threads():
     spans = [["in-process", 0.5, 1.0], ["in-process", 0.5, 0.8], ["in-process", 0.8, 1.2], ["in-process", 1.0, 1.1]]
-    lanes = _lanes(spans)
+    lanes = timeline_lanes(spans)
     assert sorted(set(lanes)) == [0, 1]
     for lane in set(lanes):  # within a lane, the spans follow one another
         mine = sorted(s[1:] for s, k in zip(spans, lanes) if k == lane)
         assert all(a[1] <= b[0] for a, b in zip(mine, mine[1:]))
     workers = [["tcp://b", 0, 1], ["tcp://a", 0, 1], ["tcp://b", 1, 2]]
-    assert _lanes(workers) == [1, 0, 1]
+    assert timeline_lanes(workers) == [1, 0, 1]
 
 
 def test_timeline_figure_draws_one_panel_per_logged_run(tmp_path):
@@ -32,4 +33,16 @@ def test_timeline_figure_draws_one_panel_per_logged_run(tmp_path):
     img = matplotlib.image.imread(out)
     assert img.shape[0] > 300 and img.shape[1] > 800  # three panels (the "same as auto" run is not drawn twice)
     assert timeline_figure(dict(note="", sets=dict(default=dict(features=feats))), tmp_path / "none.png") is None
+    assert not (tmp_path / "none.png").exists()
+
+
+def test_collection_timeline_draws_this_runs_matched_pairs(tmp_path):
+    from guidedmatch.plots import collection_timeline
+
+    recs = [dict(status="done", worker="tcp://a", t_start=100.0, t_end=100.5),
+            dict(status="done", worker="tcp://b", t_start=100.1, t_end=100.4),
+            dict(status="failed", worker="tcp://b", t_start=100.4, t_end=100.6)]
+    out = collection_timeline(tmp_path / "t.png", recs, title="local-cluster")
+    assert out == tmp_path / "t.png" and matplotlib.image.imread(out).shape[1] > 500
+    assert collection_timeline(tmp_path / "none.png", [dict(status="failed", reason="x")]) is None
     assert not (tmp_path / "none.png").exists()

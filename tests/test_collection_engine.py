@@ -481,9 +481,10 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
     stored = db_rows(db)  # a valid database: every stored pair has its matches and its geometry
     assert 2 <= len(stored) < n_pairs and all(g is not None for _, g in stored.values())
 
-    r2 = run_cli("colmap", db, "--log", tmp_path / "run2.jsonl")  # auto: in-process for this small rest
-    assert r2.returncode == 0, r2.stderr
+    r2 = run_cli("colmap", db, "--log", tmp_path / "run2.jsonl", "--timeline", tmp_path / "run2.png")  # auto:
+    assert r2.returncode == 0, r2.stderr                                  # in-process for this small rest
     assert f"{len(stored)} skipped" in r2.stdout
+    assert f"timeline   : {tmp_path / 'run2.png'}" in r2.stdout and (tmp_path / "run2.png").stat().st_size > 0
     summary = json.loads((tmp_path / "run2.jsonl").read_text().splitlines()[-1])
     assert summary["event"] == "summary" and summary["done"] == n_pairs - len(stored) and summary["failed"] == []
 
@@ -502,8 +503,9 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
     registered = {im.name for im in next(iter(recs.values())).images.values() if im.has_pose}
     assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
 
-    r3 = run_cli("colmap", db, "--log", "none")  # a rerun skips every pair
+    r3 = run_cli("colmap", db, "--log", "none", "--timeline", tmp_path / "run3.png")  # a rerun skips every pair
     assert r3.returncode == 0 and f"{n_pairs} skipped" in r3.stdout
+    assert "no pair was matched in this run: no figure" in r3.stdout and not (tmp_path / "run3.png").exists()
 
 
 def test_cli_refuses_a_second_writer_and_bad_inputs_with_one_line(rendered_db, tmp_path):
@@ -527,6 +529,8 @@ def test_cli_refuses_a_second_writer_and_bad_inputs_with_one_line(rendered_db, t
     pairs.write_text(f"{mv.names[0]} {mv.names[1]}\n{mv.names[0]} nope.png\n")
     one_line_error(run_cli("colmap", db, "--pairs", pairs, "--workers", "0"), "nope.png")
     one_line_error(run_cli("colmap", db, "--config", "band_px=-1"), "band_px")
+    one_line_error(run_cli("colmap", db, "--timeline", tmp_path / "t.jpg"), "--timeline", "PNG")
+    one_line_error(run_cli("colmap", db, "--timeline", "/proc/nope/t.png"), "--timeline", "/proc/nope")
     with ColmapSink(db):  # another writer holds the database
         one_line_error(run_cli("colmap", db, "--workers", "0"), "being written by another process")
     assert db_rows(db) == {}

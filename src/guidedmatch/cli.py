@@ -391,6 +391,7 @@ COLMAP_EXAMPLES = """examples:
   guidedmatch colmap db.db --pairs pairs.txt --workers 2       # a COLMAP / hloc pairs file, 2 local processes
   guidedmatch colmap db.db --scheduler tcp://10.0.0.1:8786     # a running Dask cluster (shared storage)
   guidedmatch colmap db.db --geometry colmap                   # raw matches, then COLMAP's own verification
+  guidedmatch colmap db.db --workers 2 --timeline run.png      # and a figure of when each pair ran, per worker
   colmap mapper --database_path db.db --image_path images --output_path sparse   # then map as usual
 
 Interrupted? Run the same command again: pairs already in the database are skipped.
@@ -432,6 +433,8 @@ def _common(p: argparse.ArgumentParser, modes) -> None:
                    help="per-pair JSON lines + a summary line (default: next to the output, .guidedmatch.jsonl; "
                         "'none' for no log)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--timeline", default=None, metavar="PNG",
+                   help="also draw when each pair of this run ran, on which worker or thread (a PNG figure)")
 
 
 def add_collection_commands(sub) -> None:
@@ -486,10 +489,15 @@ def _print_pairs(pairs) -> None:
         print(f"pairs      : {pairs.summary()}")
 
 
-def _finish(report, log_path) -> int:
+def _finish(report, log_path, timeline: str | None = None) -> int:
     print(report.summary())
     if log_path:
         print(f"log        : {log_path}")
+    if timeline:
+        from .plots import collection_timeline
+
+        drawn = collection_timeline(timeline, report.per_pair, title=report.totals.get("backend", ""))
+        print(f"timeline   : {drawn if drawn else 'no pair was matched in this run: no figure'}")
     if report.failed:
         (a, b), reason = report.failed[0]
         n = report.done + len(report.failed)
@@ -504,6 +512,10 @@ def _setup(args, output: Path, open_source, spec: str):
     from .collection.pairs import pairs_from_spec
 
     cfg = _collection_config(args, output.with_name(output.name + ".guidedmatch.jsonl"))
+    if args.timeline is not None:
+        if Path(args.timeline).suffix.lower() != ".png":
+            raise ConfigError(f"--timeline writes a PNG figure; give a .png path, got {args.timeline}")
+        writable_folder(Path(args.timeline).parent, "--timeline")
     source = open_source()
     pairs = pairs_from_spec(spec, source.names())
     _print_pairs(pairs)
@@ -523,7 +535,7 @@ def cmd_colmap(args) -> int:
         if args.geometry == "colmap" and report.done:
             n = sink.verify()
             print(f"verified   : {n} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
-    return _finish(report, cfg.log_path)
+    return _finish(report, cfg.log_path, args.timeline)
 
 
 def cmd_hloc(args) -> int:
@@ -535,7 +547,7 @@ def cmd_hloc(args) -> int:
     cfg, source, pairs = _setup(args, out, lambda: H5Source(args.features), args.pairs)
     with H5MatchesSink(out, source) as sink:
         report = match_collection(source, pairs, sink, cfg)
-    return _finish(report, cfg.log_path)
+    return _finish(report, cfg.log_path, args.timeline)
 
 
 # --------------------------------------------------------------------------- parser

@@ -1,5 +1,5 @@
 """Figures: motion fields (as in the paper's real-image figure, Teng & Dong §IV-C), multi-panel
-comparisons, and the search-region illustration (the paper's Fig. 1).
+comparisons, the search-region illustration (the paper's Fig. 1), and the timeline of a collection run.
 
 All functions write PNGs atomically (temp file + rename) with the non-interactive Agg backend.
 """
@@ -230,4 +230,78 @@ def search_regions(path, image1, image2, f1, f2, result, models=None, num_sample
             ax.set_xticks([])
             ax.set_yticks([])
     fig.tight_layout()
+    return save_figure(fig, path)
+
+
+# --------------------------------------------------------------------------- collection timeline
+def timeline_lanes(spans: list) -> list[int]:
+    """A row per span of a collection run's timeline: one row per worker process; the spans of in-process threads
+    (all "in-process") go on the first row free at their start (greedy interval partitioning), which gives as many
+    rows as pairs ran at once.
+
+    ``spans``: ``[worker, start, end]`` per pair.
+
+    >>> timeline_lanes([["w1", 0, 2], ["w2", 0, 1], ["w1", 2, 3]])
+    [0, 1, 0]
+    >>> timeline_lanes([["in-process", 0, 2], ["in-process", 0, 1], ["in-process", 1.5, 3]])
+    [0, 1, 1]
+    """
+    workers = sorted({w for w, _, _ in spans})
+    if len(workers) > 1 or (workers and workers[0] != "in-process"):
+        return [workers.index(w) for w, _, _ in spans]
+    free_at: list[float] = []
+    lanes = [0] * len(spans)
+    for i in sorted(range(len(spans)), key=lambda k: spans[k][1]):
+        start, end = spans[i][1], spans[i][2]
+        lane = next((j for j, t in enumerate(free_at) if t <= start + 1e-9), len(free_at))
+        if lane == len(free_at):
+            free_at.append(end)
+        else:
+            free_at[lane] = end
+        lanes[i] = lane
+    return lanes
+
+
+def draw_timeline(ax, spans: list, end: float | None = None, row_name: str = "worker") -> tuple[float, float]:
+    """One bar per pair on its worker's (or thread's) row, times in seconds on the x axis; grey before the first pair
+    (from 0) and after the last one (up to ``end``). Returns ``(first start, last end)``."""
+    colors = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+    lanes = timeline_lanes(spans)
+    first = min(s[1] for s in spans)
+    last = max(s[2] for s in spans)
+    for i, ((_, t0, t1), lane) in enumerate(zip(spans, lanes)):
+        ax.broken_barh([(t0, t1 - t0)], (lane - 0.4, 0.8), facecolors=colors[i % len(colors)], edgecolor="white",
+                       linewidth=0.5)
+    n = max(lanes) + 1
+    end = last if end is None else max(end, last)
+    ax.axvspan(min(0.0, first), first, color="0.85", zorder=0)
+    ax.axvspan(last, end, color="0.85", zorder=0)
+    ax.set_xlim(min(0.0, first), end * 1.01 if end > 0 else 1.0)
+    ax.set_ylim(-0.6, n - 0.4)
+    ax.set_yticks(range(n), [f"{row_name} {k + 1}" for k in range(n)], fontsize=7)
+    ax.tick_params(axis="x", labelsize=7)
+    return first, last
+
+
+def collection_timeline(path: str | os.PathLike, records: list[dict], title: str = "") -> Path | None:
+    """The timeline of a collection run (``guidedmatch colmap|hloc --timeline PNG``): when each pair was loaded and
+    matched, on which worker or thread, from the per-pair records of :class:`~guidedmatch.collection.engine.
+    CollectionReport` (``worker``, ``t_start``, ``t_end``). Time 0 is the start of the first pair. None when no
+    record has times (nothing was matched)."""
+    recs = [r for r in records if r.get("status") == "done" and "t_start" in r]
+    if not recs:
+        return None
+    t0 = min(r["t_start"] for r in recs)
+    spans = [[r.get("worker", "?"), r["t_start"] - t0, r["t_end"] - t0] for r in recs]
+    threads = all(s[0] == "in-process" for s in spans)
+    n_rows = max(timeline_lanes(spans)) + 1
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(10, 1.2 + 0.35 * n_rows))
+    first, last = draw_timeline(ax, spans, row_name="thread" if threads else "worker")
+    busy = sum(s[2] - s[1] for s in spans)
+    ax.set_xlabel("seconds since the first pair started", fontsize=8)
+    kind = ("thread" if threads else "worker") + ("s" if n_rows != 1 else "")
+    use = busy / max(last - first, 1e-9) / n_rows
+    ax.set_title((title + ": " if title else "") + f"{len(spans)} pairs in {last - first:.2f} s on {n_rows} {kind}; "
+                 f"rows busy {use:.0%} of that time", fontsize=9, loc="left")
     return save_figure(fig, path)

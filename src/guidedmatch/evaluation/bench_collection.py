@@ -330,31 +330,6 @@ def figure(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _lanes(spans: list) -> list[int]:
-    """A lane per span: one per worker process; spans of in-process threads (one "worker") are put on the first lane
-    free at their start (greedy interval partitioning), which gives as many lanes as pairs ran at once.
-
-    >>> _lanes([["w1", 0, 2], ["w2", 0, 1], ["w1", 2, 3]])
-    [0, 1, 0]
-    >>> _lanes([["in-process", 0, 2], ["in-process", 0, 1], ["in-process", 1.5, 3]])
-    [0, 1, 1]
-    """
-    workers = sorted({w for w, _, _ in spans})
-    if len(workers) > 1 or (workers and workers[0] != "in-process"):
-        return [workers.index(w) for w, _, _ in spans]
-    free_at: list[float] = []
-    lanes = [0] * len(spans)
-    for i in sorted(range(len(spans)), key=lambda k: spans[k][1]):
-        start, end = spans[i][1], spans[i][2]
-        lane = next((j for j, t in enumerate(free_at) if t <= start + 1e-9), len(free_at))
-        if lane == len(free_at):
-            free_at.append(end)
-        else:
-            free_at[lane] = end
-        lanes[i] = lane
-    return lanes
-
-
 TIMELINE_RUNS = (("ours", "auto"), ("workers_0t1", "in-process, 1 thread"), ("workers_1", "1 local worker"),
                  ("workers_2", "2 local workers"))
 
@@ -368,28 +343,16 @@ def timeline_figure(result: dict, path: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..plots import draw_timeline
+
     panels = [(name, key, label, row[key]) for name, row in result["sets"].items() for key, label in TIMELINE_RUNS
               if key in row and row[key].get("spans") and not (key != "ours" and row[key].get("same_as"))]
     if not panels:
         return None
     fig, axes = plt.subplots(len(panels), 1, figsize=(10, 0.9 + 0.75 * len(panels)), squeeze=False)
-    colors = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
     for ax, (name, key, label, run) in zip(axes[:, 0], panels):
-        spans = run["spans"]
-        lanes = _lanes(spans)
-        first = min(s[1] for s in spans)
-        last = max(s[2] for s in spans)
-        for i, ((_, t0, t1), lane) in enumerate(zip(spans, lanes)):
-            ax.broken_barh([(t0, t1 - t0)], (lane - 0.4, 0.8), facecolors=colors[i % len(colors)], edgecolor="white",
-                           linewidth=0.5)
-        n = max(lanes) + 1
-        ax.axvspan(0, first, color="0.85", zorder=0)
-        ax.axvspan(last, run["wall_s"], color="0.85", zorder=0)
-        ax.set_xlim(0, run["wall_s"] * 1.01)
-        ax.set_ylim(-0.6, n - 0.4)
-        ax.set_yticks(range(n), [f"{'thread' if run['summary'].get('backend') == 'in-process' else 'worker'} {k + 1}"
-                                 for k in range(n)], fontsize=7)
-        ax.tick_params(axis="x", labelsize=7)
+        row_name = "thread" if run["summary"].get("backend") == "in-process" else "worker"
+        first, last = draw_timeline(ax, run["spans"], end=run["wall_s"], row_name=row_name)
         ax.set_title(f"{name} ({result['sets'][name]['features']['features_mean']:.0f} feat./image), {label}: "
                      f"{run['wall_s']:.2f} s; first pair at {first:.2f} s, last done at {last:.2f} s",
                      fontsize=8, loc="left")
