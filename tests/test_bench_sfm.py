@@ -29,6 +29,11 @@ def test_markdown_table_ratios_and_failures():
     assert "| so+epi+ia+colmap | 1.00 + 1.00 | 0.50 | 1,600 | 1.60x |" in lines[2]
     assert "| inf |" in lines[3]              # a null median (JSON of inf) is shown as inf
     assert "failed: RuntimeError: x" in lines[4]
+    assert "| 1.00x | – | – |" in lines[1]     # rows without the model check: no wrong-inlier columns
+    rows[0]["inlier_consistency"] = dict(wrong_rate=0.001, est_correct=990.0)
+    rows[1]["inlier_consistency"] = dict(wrong_rate=0.04, est_correct=1485.0)
+    lines = [l for l in bench_sfm.markdown_table(rows).splitlines() if l.startswith("| ")]
+    assert "| 1,000 | 1.00x | 0.10 % | 1.00x |" in lines[1] and "| 1,600 | 1.60x | 4.00 % | 1.50x |" in lines[2]
 
 
 def test_merge_rows_keeps_order_and_replaces():
@@ -67,6 +72,49 @@ def _write_strecha_scene(folder, scene):
             "\n".join(" ".join(f"{v:.12g}" for v in r) for r in rows) + "\n")
 
 
+def _check_corrupted_inliers_are_wrong(mdir, before):
+    """Move labelled inliers of one pair (image-1 keypoint with a 3-D point) to keypoints > 50 px away: each must
+    then count as wrong."""
+    import shutil
+
+    import pycolmap
+
+    from guidedmatch.evaluation.consistency import inlier_consistency
+
+    rec = pycolmap.Reconstruction(str(mdir / "sparse" / "0"))
+    has_point = {im.name: np.array([p.has_point3D() for p in im.points2D]) for im in rec.images.values()
+                 if im.has_pose}
+    db_path = mdir / "corrupted.db"
+    shutil.copyfile(mdir / "database.db", db_path)
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        best = None
+        for a in sorted(names):
+            for b in sorted(names):
+                if a < b and names[a] in has_point and names[b] in has_point and db.exists_two_view_geometry(a, b):
+                    m = np.array(db.read_two_view_geometry(a, b).inlier_matches).reshape(-1, 2)
+                    sel = np.flatnonzero(has_point[names[a]][m[:, 0]]) if len(m) else np.zeros(0, int)
+                    if best is None or len(sel) > len(best[2]):
+                        best = (a, b, sel)
+        a, b, sel = best
+        sel = sel[:40]
+        assert len(sel) >= 10
+        tvg = db.read_two_view_geometry(a, b)
+        m = np.array(tvg.inlier_matches)
+        kb = db.read_keypoints(b)[:, :2]
+        for r in sel:
+            far = np.flatnonzero(np.linalg.norm(kb - kb[m[r, 1]], axis=1) > 50)
+            m[r, 1] = far[r % len(far)]
+        tvg.inlier_matches = m
+        db.update_two_view_geometry(a, b, tvg)
+    finally:
+        db.close()
+    after = inlier_consistency(db_path, mdir / "sparse" / "0")
+    assert after["inliers"] == before["inliers"] and after["labelled"] == before["labelled"]
+    assert after["wrong"] - before["wrong"] >= 0.9 * len(sel), (after, before, len(sel))
+
+
 def test_colmap_baseline_on_rendered_scene(tmp_path):
     """The real protocol (extract, copy, match_exhaustive, map, GT poses) on 5 rendered views; a second run with
     merge keeps the first row and reuses the extracted database."""
@@ -86,6 +134,12 @@ def test_colmap_baseline_on_rendered_scene(tmp_path):
     assert len(ev["unregistered"]) == 5 - row["registered"]
     scored = [p["error_deg"] for p in ev["per_pair"] if p["error_deg"] is not None and math.isfinite(p["error_deg"])]
     assert len(scored) == row["registered"] * (row["registered"] - 1) // 2
+    # the model check of the inliers: COLMAP's verified matches of a rendered scene agree with its own model ...
+    ic = row["inlier_consistency"]
+    assert ic["inliers"] == row["verified_inliers"] and ic["labelled"] >= 100
+    assert ic["wrong_rate"] < 0.01 and ic["est_correct"] > 0.95 * ic["inliers"]
+    # ... and matches moved to other keypoints of the same image (wrong, whatever the epipolar line) are caught
+    _check_corrupted_inliers_are_wrong(out / "work" / "8192" / "colmap", ic)
     saved = json.loads((out / "sfm.json").read_text())
     assert saved["rows"][0]["verified_inliers"] == row["verified_inliers"] and "cpu_model" in saved["meta"]
     assert (out / "sfm.md").read_text().count("| colmap |") == 1 and (out / "sfm_time_vs_inliers.png").is_file()

@@ -143,6 +143,9 @@ def evaluate_database(db: Path, image_dir: Path, gt: dict, work: Path, threads: 
         best = mapping["models"][0]
         rec = pycolmap.Reconstruction(str(work / "sparse" / "0"))
         ev = evaluate_poses(poses_from_reconstruction(rec), gt)
+        from .consistency import inlier_consistency
+
+        out["inlier_consistency"] = inlier_consistency(db, rec)
         out.update(registered=best["registered"], points3D=best["points3D"],
                    mean_track_length=best["mean_track_length"],
                    mean_reprojection_error_px=best["mean_reprojection_error_px"], poses=ev.to_dict(),
@@ -279,8 +282,10 @@ def _fmt(v, spec="{:.2f}"):
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """One table per feature setting: the issue's columns plus mapping time, and time / inliers relative to
-    COLMAP exhaustive in the same run."""
+    """One table per feature setting: the issue's columns plus mapping time, time / inliers relative to COLMAP
+    exhaustive in the same run, and how many verified inliers the method's own model says are wrong (> 10 px off
+    the 3-D point of the other keypoint; :mod:`guidedmatch.evaluation.consistency`) with the estimated correct
+    inliers relative to COLMAP's ("–" for rows run before that check existed)."""
     out = []
     for setting in dict.fromkeys(r["setting"] for r in rows):
         sub = [r for r in rows if r["setting"] == setting]
@@ -288,12 +293,13 @@ def markdown_table(rows: list[dict]) -> str:
         kp = sub[0].get("keypoints")
         out += [f"**{setting} features** ({kp:,} keypoints in {sub[0].get('images', '?')} images)" if kp else
                 f"**{setting} features**", "",
-                "| method | match + verify (s) | time / COLMAP | verified inliers | inliers / COLMAP | registered | "
-                "3D points | mapping (s) | median pose error | AUC@1°/2°/5° |",
-                "|---|---|---|---|---|---|---|---|---|---|"]
+                "| method | match + verify (s) | time / COLMAP | verified inliers | inliers / COLMAP | wrong inliers "
+                "(model) | est. correct / COLMAP | registered | 3D points | mapping (s) | median pose error | "
+                "AUC@1°/2°/5° |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in sub:
             if "error" in r:
-                out.append(f"| {r['method']} | failed: {r['error']} | | | | | | | | |")
+                out.append(f"| {r['method']} | failed: {r['error']} | | | | | | | | | | |")
                 continue
             t = _fmt(r["match_verify_s"])
             if r.get("verify_s") is not None:
@@ -302,7 +308,10 @@ def markdown_table(rows: list[dict]) -> str:
             ri = f"{r['verified_inliers'] / max(1, ref['verified_inliers']):.2f}x" if ref else "–"
             auc = " / ".join(f"{v:.3f}" for v in r["auc"].values())
             med = r["median_pose_error_deg"]
-            out.append(f"| {r['method']} | {t} | {rt} | {r['verified_inliers']:,} | {ri} | "
+            ic, ic_ref = r.get("inlier_consistency"), (ref or {}).get("inlier_consistency")
+            wrong = f"{100 * ic['wrong_rate']:.2f} %" if ic else "–"
+            corr = f"{ic['est_correct'] / ic_ref['est_correct']:.2f}x" if ic and ic_ref else "–"
+            out.append(f"| {r['method']} | {t} | {rt} | {r['verified_inliers']:,} | {ri} | {wrong} | {corr} | "
                        f"{r['registered']}/{r.get('images', '?')} | {r['points3D']:,} | {r['mapping_s']:.1f} | "
                        f"{'inf' if med is None or med == float('inf') else f'{med:.3f}°'} | {auc} |")
         out.append("")
