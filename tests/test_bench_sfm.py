@@ -33,7 +33,12 @@ def test_markdown_table_ratios_and_failures():
     rows[0]["inlier_consistency"] = dict(wrong_rate=0.001, est_correct=990.0)
     rows[1]["inlier_consistency"] = dict(wrong_rate=0.04, est_correct=1485.0)
     lines = [l for l in bench_sfm.markdown_table(rows).splitlines() if l.startswith("| ")]
-    assert "| 1,000 | 1.00x | 0.10 % | 1.00x |" in lines[1] and "| 1,600 | 1.60x | 4.00 % | 1.50x |" in lines[2]
+    assert "| 1,000 | 1.00x | 0.10 % (own model) | 1.00x |" in lines[1]
+    assert "| 1,600 | 1.60x | 4.00 % (own model) | 1.50x |" in lines[2]
+    rows[0]["inlier_consistency_colmap_model"] = dict(wrong_rate=0.001, est_correct=990.0)  # one judge for both
+    rows[1]["inlier_consistency_colmap_model"] = dict(wrong_rate=0.025, est_correct=1545.0)
+    lines = [l for l in bench_sfm.markdown_table(rows).splitlines() if l.startswith("| ")]
+    assert "| 1,600 | 1.60x | 2.50 % | 1.56x |" in lines[2]
 
 
 def test_merge_rows_keeps_order_and_replaces():
@@ -140,6 +145,7 @@ def test_colmap_baseline_on_rendered_scene(tmp_path):
     assert ic["wrong_rate"] < 0.01 and ic["est_correct"] > 0.95 * ic["inliers"]
     # ... and matches moved to other keypoints of the same image (wrong, whatever the epipolar line) are caught
     _check_corrupted_inliers_are_wrong(out / "work" / "8192" / "colmap", ic)
+    assert row["inlier_consistency_colmap_model"] == ic  # COLMAP's row: the judge is its own model
     saved = json.loads((out / "sfm.json").read_text())
     assert saved["rows"][0]["verified_inliers"] == row["verified_inliers"] and "cpu_model" in saved["meta"]
     assert (out / "sfm.md").read_text().count("| colmap |") == 1 and (out / "sfm_time_vs_inliers.png").is_file()
