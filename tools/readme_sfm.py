@@ -55,11 +55,11 @@ def section(results: dict) -> str:
              "max(rotation, translation-direction) error of the relative pose of every image pair against the "
              "Strecha GT cameras (unregistered images count as failures), AUC = area under the recall curve up to "
              "1/2/5 deg. `+ours` = our two-view geometries written directly; `+colmap` = our matches verified by "
-             "COLMAP (time shown as match + verify). Wrong inliers (model): verified inliers whose partner lies > 10 px "
-             "from where the method's own model puts it (the 3-D point of one keypoint projected into the other "
-             "image; a wrong match on the right epipolar line passes F but not this check; "
-             "`guidedmatch.evaluation.consistency`); est. correct = verified inliers x the share within 3 px, "
-             "relative to COLMAP's.", "",
+             "COLMAP (time shown as match + verify). Wrong inliers (COLMAP's model): verified inliers whose partner "
+             "lies > 10 px from where the model mapped from COLMAP's exhaustive matches of the same run puts it (the "
+             "3-D point of one keypoint projected into the other image: a wrong match on the right epipolar line "
+             "passes F but not this check; `guidedmatch.evaluation.consistency`); est. correct = verified inliers x "
+             "the share within 3 px, relative to COLMAP's.", "",
              markdown_table(results["rows"]).rstrip(), "",
              *(["End to end from an empty folder (8192 features; `guidedmatch sfm` with its defaults vs the same "
                 "pycolmap pipeline with COLMAP's matcher):", "", e2e_table(results["end_to_end"]), ""]
