@@ -286,8 +286,9 @@ def draw_timeline(ax, spans: list, end: float | None = None, row_name: str = "wo
 def collection_timeline(path: str | os.PathLike, records: list[dict], title: str = "") -> Path | None:
     """The timeline of a collection run (``guidedmatch colmap|hloc --timeline PNG``): when each pair was loaded and
     matched, on which worker or thread, from the per-pair records of :class:`~guidedmatch.collection.engine.
-    CollectionReport` (``worker``, ``t_start``, ``t_end``). Time 0 is the start of the first pair. None when no
-    record has times (nothing was matched)."""
+    CollectionReport` (``worker``, ``t_start``, ``t_end``: Unix time of each worker's own clock, so workers on
+    several machines need synchronized clocks). Time 0 is the start of the first pair. None when no record has
+    times (nothing was matched)."""
     recs = [r for r in records if r.get("status") == "done" and "t_start" in r]
     if not recs:
         return None
