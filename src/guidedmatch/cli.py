@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from ._runtime import freeze_gc_at_exit
 from .config import MODES, MatcherConfig
 from .errors import ConfigError, GuidedMatchError, InputError, OutputError
-from ._runtime import freeze_gc_at_exit
 from .features import writable_folder
 
 OUTPUT_FORMATS = (".npz", ".csv", ".json")
