@@ -42,33 +42,23 @@ def main(argv=None) -> int:
     p.add_argument("--band", type=float, default=5.0, help="epipolar band half-width, px (default 5)")
     a = p.parse_args(argv)
 
-    import pycolmap
-
     from guidedmatch.collection.engine import collection_matcher_config
     from guidedmatch.collection.sources import open_source
+    from guidedmatch.evaluation.consistency import ModelJudge
     from guidedmatch.matcher import match
     from guidedmatch.prepared import prepare
 
     src = open_source(a.database)
     names = src.names()
-    rec = pycolmap.Reconstruction(a.judge)
-    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
+    judge = ModelJudge(a.judge)
     feats = {n: src.load(n) for n in names}
     prep = {n: prepare(feats[n]) for n in names}
-    pid = {n: np.array([q.point3D_id if q.has_point3D() else -1 for q in by_name[n].points2D]) for n in names
-           if n in by_name}
-
-    def project(n: str, X: np.ndarray) -> np.ndarray:
-        im = by_name[n]
-        T = im.cam_from_world() if callable(getattr(im, "cam_from_world", None)) else im.cam_from_world
-        return np.asarray(rec.cameras[im.camera_id].img_from_cam(X @ T.rotation.matrix().T + T.translation))[:, :2]
-
     rows = []
     cfg = collection_matcher_config()
     for n1, n2 in itertools.combinations(names, 2):
         r = match(prep[n1], prep[n2], "so+epi+ia", cfg)
         g = r.geometry
-        if not g or g.model != "F" or n1 not in pid or n2 not in pid:
+        if not g or g.model != "F" or not judge.has(n1) or not judge.has(n2):
             continue
         P, d1 = r.pairs[g.inliers], r.distances[g.inliers].astype(float)
         k1, k2 = feats[n1].keypoints[:, :2], feats[n2].keypoints[:, :2]
@@ -84,16 +74,7 @@ def main(argv=None) -> int:
             other[s:s + 512] = D.min(1)
             D[np.abs(h2 @ lines[s:s + 512].T).T > a.band] = np.inf
             other_line[s:s + 512] = D.min(1)
-        e = np.full(len(P), np.nan)
-        p1, p2 = pid[n1][P[:, 0]], pid[n2][P[:, 1]]
-        u1 = p1 >= 0
-        if u1.any():
-            e[u1] = np.linalg.norm(project(n2, np.array([rec.points3D[int(x)].xyz for x in p1[u1]])) - k2[P[u1, 1]],
-                                   axis=1)
-        u2 = ~u1 & (p2 >= 0)
-        if u2.any():
-            e[u2] = np.linalg.norm(project(n1, np.array([rec.points3D[int(x)].xyz for x in p2[u2]])) - k1[P[u2, 0]],
-                                   axis=1)
+        e = judge.errors(n1, n2, P, feats[n1].keypoints, feats[n2].keypoints)
         rows.append(np.c_[d1, other, other_line, e])
     if not rows:
         print("no verified F pair with both images in the judge model", file=sys.stderr)

@@ -156,6 +156,12 @@ def evaluate_database(db: Path, image_dir: Path, gt: dict, work: Path, threads: 
     return out
 
 
+def method_dir(work: Path, method: str) -> Path:
+    """The folder of one row's database and model under a setting's ``work`` folder (``so+epi+ia+ours`` ->
+    ``so_epi_ia_ours``)."""
+    return work / method.replace("+", "_")
+
+
 def judge_with_colmap_model(rows: list[dict], work: Path) -> None:
     """Label every row's verified inliers with one judge per feature setting: the model mapped from COLMAP's own
     exhaustive matches (``work/<setting>/colmap/sparse/0``; 0.1 % of its inliers off its model), whose 3-D points
@@ -167,8 +173,8 @@ def judge_with_colmap_model(rows: list[dict], work: Path) -> None:
     for r in rows:
         if "error" in r:
             continue
-        judge = work / r["setting"] / "colmap" / "sparse" / "0"
-        db = work / r["setting"] / r["method"].replace("+", "_") / "database.db"
+        judge = method_dir(work / r["setting"], "colmap") / "sparse" / "0"
+        db = method_dir(work / r["setting"], r["method"]) / "database.db"
         if judge.is_dir() and db.is_file():
             r["inlier_consistency_colmap_model"] = inlier_consistency(db, judge)
 
@@ -176,7 +182,7 @@ def judge_with_colmap_model(rows: list[dict], work: Path) -> None:
 def run_method(method: str, base_db: Path, image_dir: Path, gt: dict, work: Path, threads: int, seed: int,
                matcher: dict | None = None, workers: int | None = None) -> dict:
     """One row: copy the base database, match + verify with ``method``, map, evaluate."""
-    mdir = work / method.replace("+", "_")
+    mdir = method_dir(work, method)
     if mdir.exists():
         shutil.rmtree(mdir)
     mdir.mkdir(parents=True)

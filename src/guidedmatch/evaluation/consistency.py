@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["inlier_consistency", "label_errors"]
+__all__ = ["ModelJudge", "inlier_consistency", "label_errors"]
 
 
 def label_errors(errors: np.ndarray, ok_px: float = 3.0, wrong_px: float = 10.0) -> dict:
@@ -41,46 +41,81 @@ def label_errors(errors: np.ndarray, ok_px: float = 3.0, wrong_px: float = 10.0)
             "uncertain": int((lab & (e > ok_px) & (e <= wrong_px)).sum()), "wrong": int((lab & (e > wrong_px)).sum())}
 
 
-def _projector(image: Any, camera: Any):
-    pose = image.cam_from_world() if callable(getattr(image, "cam_from_world", None)) else image.cam_from_world
-    R, t = pose.rotation.matrix(), np.asarray(pose.translation)
+class ModelJudge:
+    """A reconstruction as a judge of matches between its images: per registered image (by name) the 3-D point id
+    of each keypoint and the projection into that image (COLMAP's ``cam_from_world``, points behind the camera
+    project to NaN)."""
 
-    def project(X: np.ndarray) -> np.ndarray:
-        xc = X @ R.T + t
+    def __init__(self, reconstruction: Any):
+        import pycolmap
+
+        rec = reconstruction if isinstance(reconstruction, pycolmap.Reconstruction) else \
+            pycolmap.Reconstruction(str(reconstruction))
+        self._images = {img.name: img for img in rec.images.values() if img.has_pose}
+        self._cameras = rec.cameras
+        self._xyz = {pid: np.asarray(p.xyz) for pid, p in rec.points3D.items()}
+        self._point_ids: dict[str, np.ndarray] = {}
+
+    def has(self, name: str) -> bool:
+        """``name`` is a registered image of the model."""
+        return name in self._images
+
+    def point_ids(self, name: str) -> np.ndarray:
+        """``(K,) int64`` 3-D point id of each keypoint of ``name`` (-1: none)."""
+        ids = self._point_ids.get(name)
+        if ids is None:
+            ids = self._point_ids[name] = np.array([p.point3D_id if p.has_point3D() else -1
+                                                    for p in self._images[name].points2D], np.int64)
+        return ids
+
+    def project(self, name: str, X: np.ndarray) -> np.ndarray:
+        """``(P, 2)`` pixels of world points ``X (P, 3)`` in image ``name``; NaN behind the camera."""
+        img = self._images[name]
+        pose = img.cam_from_world() if callable(getattr(img, "cam_from_world", None)) else img.cam_from_world
+        xc = X @ pose.rotation.matrix().T + np.asarray(pose.translation)
         uv = np.full((len(X), 2), np.nan)
         front = xc[:, 2] > 1e-9
         if front.any():
-            uv[front] = np.asarray(camera.img_from_cam(xc[front]), float).reshape(-1, 2)
+            uv[front] = np.asarray(self._cameras[img.camera_id].img_from_cam(xc[front]), float).reshape(-1, 2)
         return uv
 
-    return project
+    def errors(self, name1: str, name2: str, matches: np.ndarray, kp1: np.ndarray, kp2: np.ndarray) -> np.ndarray:
+        """``(M,)`` pixels between each match's keypoint and where the model puts it: the 3-D point of the image-1
+        keypoint projected into image 2 (or, when it has none, that of the image-2 keypoint into image 1); NaN when
+        neither keypoint has a 3-D point. ``kp1``, ``kp2``: the images' keypoints ``(K, >=2)``, the model's own."""
+        p1, p2 = self.point_ids(name1), self.point_ids(name2)
+        if len(p1) != len(kp1) or len(p2) != len(kp2):
+            raise ValueError(f"the model's keypoints of {name1} / {name2} are not the given ones (map these "
+                             "features, then check them against that model)")
+        m = np.asarray(matches, np.int64).reshape(-1, 2)
+        e = np.full(len(m), np.nan)
+        a, b = p1[m[:, 0]], p2[m[:, 1]]
+        use_a = a >= 0
+        if use_a.any():  # the image-1 keypoint's 3-D point seen from image 2
+            X = np.array([self._xyz[int(p)] for p in a[use_a]])
+            e[use_a] = np.linalg.norm(self.project(name2, X) - kp2[m[use_a, 1], :2], axis=1)
+        use_b = ~use_a & (b >= 0)
+        if use_b.any():  # else the image-2 keypoint's seen from image 1
+            X = np.array([self._xyz[int(p)] for p in b[use_b]])
+            e[use_b] = np.linalg.norm(self.project(name1, X) - kp1[m[use_b, 0], :2], axis=1)
+        return e
 
 
 def inlier_consistency(database: str | os.PathLike, reconstruction: Any, ok_px: float = 3.0,
                        wrong_px: float = 10.0) -> dict:
     """Label the two-view-geometry inliers of ``database`` with ``reconstruction`` (a ``pycolmap.Reconstruction``
-    or its folder) built from the same database (same image names and keypoints).
+    or its folder) built from the same features (same image names and keypoints).
 
     Returns ``{"inliers", "labelled", "consistent", "uncertain", "wrong", "wrong_rate", "est_correct",
     "ok_px", "wrong_px"}`` (``wrong_rate`` = wrong / labelled; ``est_correct`` = inliers x consistent / labelled).
     """
     import pycolmap
 
-    rec = reconstruction if isinstance(reconstruction, pycolmap.Reconstruction) else \
-        pycolmap.Reconstruction(str(reconstruction))
-    by_name = {img.name: img for img in rec.images.values() if img.has_pose}
-    xyz = {pid: np.asarray(p.xyz) for pid, p in rec.points3D.items()}
+    judge = ModelJudge(reconstruction)
     db = pycolmap.Database.open(str(database))
     try:
         names = {img.image_id: img.name for img in db.read_all_images()}
-        point_ids, keypoints, projectors = {}, {}, {}
-        for image_id, name in names.items():
-            img = by_name.get(name)
-            if img is None:
-                continue
-            point_ids[image_id] = np.array([p.point3D_id if p.has_point3D() else -1 for p in img.points2D], np.int64)
-            keypoints[image_id] = np.asarray(db.read_keypoints(image_id))[:, :2]
-            projectors[image_id] = _projector(img, rec.cameras[img.camera_id])
+        keypoints = {i: np.asarray(db.read_keypoints(i)) for i, n in names.items() if judge.has(n)}
         inliers = 0
         errors = []
         for a, b in itertools.combinations(sorted(names), 2):
@@ -88,22 +123,8 @@ def inlier_consistency(database: str | os.PathLike, reconstruction: Any, ok_px: 
                 continue
             m = np.asarray(db.read_two_view_geometry(a, b).inlier_matches, np.int64).reshape(-1, 2)
             inliers += len(m)
-            if len(m) == 0 or a not in projectors or b not in projectors:
-                continue
-            if len(point_ids[a]) != len(keypoints[a]) or len(point_ids[b]) != len(keypoints[b]):
-                raise ValueError(f"{database}: the reconstruction's keypoints of {names[a]} / {names[b]} are not the "
-                                 "database's (map this database, then check it against that model)")
-            e = np.full(len(m), np.nan)
-            pa, pb = point_ids[a][m[:, 0]], point_ids[b][m[:, 1]]
-            use_a = pa >= 0
-            if use_a.any():  # i's 3-D point seen from B
-                X = np.array([xyz[int(p)] for p in pa[use_a]])
-                e[use_a] = np.linalg.norm(projectors[b](X) - keypoints[b][m[use_a, 1]], axis=1)
-            use_b = ~use_a & (pb >= 0)
-            if use_b.any():  # else j's 3-D point seen from A
-                X = np.array([xyz[int(p)] for p in pb[use_b]])
-                e[use_b] = np.linalg.norm(projectors[a](X) - keypoints[a][m[use_b, 0]], axis=1)
-            errors.append(e)
+            if len(m) and a in keypoints and b in keypoints:
+                errors.append(judge.errors(names[a], names[b], m, keypoints[a], keypoints[b]))
     finally:
         db.close()
     counts = label_errors(np.concatenate(errors) if errors else np.zeros(0), ok_px, wrong_px)
