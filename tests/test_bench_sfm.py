@@ -118,6 +118,12 @@ def _check_corrupted_inliers_are_wrong(mdir, before):
     after = inlier_consistency(db_path, mdir / "sparse" / "0")
     assert after["inliers"] == before["inliers"] and after["labelled"] == before["labelled"]
     assert after["wrong"] - before["wrong"] >= 0.9 * len(sel), (after, before, len(sel))
+    # the judge's 3-D points are the model's
+    from guidedmatch.evaluation.consistency import ModelJudge
+
+    judge = ModelJudge(rec)
+    pid = next(iter(rec.points3D))
+    np.testing.assert_array_equal(judge.xyz(pid), rec.points3D[pid].xyz)
 
 
 def test_colmap_baseline_on_rendered_scene(tmp_path):

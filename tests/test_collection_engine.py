@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import threading
 import time
 
 import numpy as np
@@ -16,6 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from guidedmatch.collection import engine
 from guidedmatch.collection.engine import (CollectionConfig, _ImageCache, _TaskSpec, match_collection,
                                            plan_tasks)
 from guidedmatch.errors import ConfigError, InputError
@@ -150,7 +152,10 @@ def test_in_process_matches_every_pair_like_the_direct_calls(views, tmp_path):
     assert rep.totals["matches"] == sum(len(r[2]) for r in sink.rows.values())
     # the cache holds the whole collection: every image loaded exactly once
     assert src.loads == 5  # in-process: this very source object
-    assert rep.totals["image_loads"] == 5 and rep.totals["cache_hits"] == 2 * len(pairs) - 5
+    # every pair takes its two images from the cache, loaded there by a pair or by the start-up prefetch
+    t = rep.totals
+    assert t["image_loads"] == 5 and t["cache_hits"] == 2 * len(pairs) - (5 - t["prefetched_images"])
+    assert 0 <= t["prefetched_indexes"] <= t["prefetched_images"] <= 5
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     assert [ln["event"] for ln in lines] == ["pair"] * 10 + ["summary"]
     assert {frozenset(ln["pair"]) for ln in lines[:-1]} == {frozenset(p) for p in pairs}
@@ -202,6 +207,30 @@ def test_cache_bound_evicts_and_keeps_the_pair_being_matched(views):
     assert list(tiny.items) == [names[0], names[1]]
     tiny.get(names[2], (names[2], names[3]))
     assert list(tiny.items) == [names[2]]
+
+
+def test_prefetch_builds_the_queued_indexes_in_order_until_told_to_stop():
+    rng = np.random.default_rng(3)
+    feats = {n: Features(rng.uniform(0, 500, (1500, 2)), rng.integers(0, 256, (1500, 128)).astype(np.float32),
+                         (500, 500)) for n in ("a", "b", "c", "d")}
+    spec = _TaskSpec("t", "so+epi+ia", MatcherConfig(), cache_bytes=2**30, single_thread=False)
+    cache = _ImageCache(DictSource(feats), spec)
+    cache.get("b", ("b",))  # already loaded by a pair: reached, not counted as a reuse
+    stop = threading.Event()
+    assert engine._prefetch_indexes(cache, ["b", "c"], stop) == 2
+    assert list(cache.items) == ["b", "c"] and cache.hits == 0 and cache.loads == 2 and cache.prefetch_loads == 1
+    assert all(cache.items[n].prepared._index is not None for n in "bc")
+    stop.set()
+    assert engine._prefetch_indexes(cache, ["d"], stop) == 0 and "d" not in cache.items
+    # a full cache stops it too (it never evicts what the pairs loaded)
+    full = _ImageCache(DictSource(feats), spec.__class__(**{**spec.__dict__, "cache_bytes": 0}))
+    assert engine._prefetch_indexes(full, ["a"], threading.Event()) == 0 and not full.items
+    # a failing load is left to the pair that needs it
+    bad = _ImageCache(DictSource(feats, fail={"a"}), spec)
+    assert engine._prefetch_indexes(bad, ["a", "b"], threading.Event()) == 0
+    # the order: each queued pair's second image, in the order the in-process runner takes the tasks
+    q = engine._Queue(plan_tasks([("a", "b"), ("a", "c"), ("b", "c"), ("d", "a")], ["a", "b", "c", "d"], 2))
+    assert engine._index_order(q) == ["b", "c", "a"]
 
 
 def test_small_cache_same_matches_more_loads(views):

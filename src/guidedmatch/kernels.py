@@ -76,32 +76,26 @@ def _l2sq_u8(a, b):
     return s
 
 
-def as_exact_uint8(desc: np.ndarray) -> np.ndarray | None:
+def as_exact_uint8(desc: np.ndarray, block: int = 8192) -> np.ndarray | None:
     """``desc`` as uint8 when every value is an integer in 0..255 (OpenCV SIFT), else None.
 
     Squared L2 of such descriptors is computed exactly (float32 sums of integers < 2^24) on a quarter of the memory
     traffic.
-    One pass, stopping at the first value that does not fit.
+    Plain NumPy in blocks of ``block`` rows, stopping at the first block with a value that does not fit: a collection
+    prepares images with it before Numba has loaded any kernel, so that the first images' indexes are built while
+    another thread loads them (``collection.engine``). Any value outside 0..255, fractional or NaN casts to a uint8
+    that compares unequal to it, whatever value the cast gives (hence ``invalid="ignore"``). ~10 ms at 68k x 128.
     """
     if desc.dtype != np.float32 or desc.size == 0 or desc.ndim != 2 or desc.shape[1] > 256:
         return None  # > 256 dimensions: the float32 sum of _l2sq_u8 could exceed 2^24 and round
     out = np.empty(desc.shape, np.uint8)
-    return out if _to_uint8_exact(np.ascontiguousarray(desc), out) else None
-
-
-@njit(cache=True)
-def _to_uint8_exact(d, out):
-    n, m = d.shape
-    for i in range(n):
-        ok = True
-        for k in range(m):
-            v = d[i, k]
-            u = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
-            out[i, k] = u
-            ok &= np.float32(u) == v
-        if not ok:
-            return False
-    return True
+    for s in range(0, len(desc), block):
+        b = desc[s:s + block]
+        with np.errstate(invalid="ignore"):
+            out[s:s + block] = b  # the cast (unsafe for values that do not fit; checked next)
+        if not np.array_equal(out[s:s + block], b):
+            return None
+    return out
 
 
 def desc_dist(a, b):  # pragma: no cover - replaced by the Numba overload below inside jitted code
@@ -271,7 +265,7 @@ def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | Non
     return StripIndex(u0, ns, width, k0, nk, cell, offsets, items, np.ascontiguousarray(pts[items]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def counting_order(key, nbins):
     """Stable counting sort of ``key (N,)`` ints in ``[0, nbins)``: ``(order (N,), offsets (nbins+1,))``.
 

@@ -42,6 +42,15 @@ with each pair): the source object is picklable (paths only) and each worker ope
 Results stream back to ONE writer -- the caller's sink in this process -- in completion order; each
 ``sink.write`` is one transaction, so the sink always holds complete pairs only.
 
+Start-up (in-process, threads >= 2)
+-----------------------------------
+The first pair of a process loads Numba's kernels from its cache (~0.25 s holding the GIL, 0.13 s of it SciPy's
+``scipy.linalg``, which Numba imports to look for BLAS). Meanwhile one pool thread loads the images the queued pairs
+search, in the order they are reached, and builds their approximate indexes (faiss releases the GIL), until the
+first pair has finished; the report's ``prefetched_images`` / ``prefetched_indexes`` count them. Every index built this way is one a queued
+pair needs, so it is work moved earlier, not added. Herz-Jesus-P8, 8192 SIFT, 28 pairs, 10 alternating runs each of
+``guidedmatch colmap DB --pairs exhaustive``: median 1.94 -> 1.78 s (docs/collections.md).
+
 Memory bound
 ------------
 * Client: the tasks in flight, at most ``workers * tasks_per_worker * chunk_pairs`` pair results, each
@@ -287,16 +296,19 @@ class _ImageCache:
         self.bytes = 0
         self.hits = 0
         self.loads = 0
+        self.prefetch_loads = 0  # loads made by _prefetch_indexes (not by a pair)
         self.load_s = 0.0
         self.lock = threading.Lock()
         self.prepare = _prepare_fn()
 
-    def get(self, name: str, pinned: tuple[str, ...]) -> _CachedImage:
+    def get(self, name: str, pinned: tuple[str, ...], count_hit: bool = True) -> _CachedImage:
+        """The cached image (loaded and prepared on a miss); ``count_hit=False``: a hit is not counted (a prefetch
+        reaching an image a pair already loaded is not a reuse)."""
         with self.lock:
             item = self.items.get(name)
             if item is not None:
                 self.items.move_to_end(name)
-                self.hits += 1
+                self.hits += count_hit
                 return item
             t0 = time.perf_counter()
             feats = self.source.load(name)
@@ -305,6 +317,7 @@ class _ImageCache:
             item = _CachedImage(feats, prepared, _nbytes(feats) + extra)
             self.load_s += time.perf_counter() - t0
             self.loads += 1
+            self.prefetch_loads += not count_hit
             self.items[name] = item
             self.bytes += item.nbytes
             self._evict(pinned)
@@ -658,9 +671,16 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
 
     pending: collections.deque = collections.deque()  # (anchor, remaining pairs of its task)
     inflight: dict = {}
-    # faiss single-threaded for the whole run: the per-search save / set / restore of its global thread count
-    # (prepared._faiss_threads) then only ever writes 1, so concurrent searches cannot race on it
-    with _faiss_threads(1), cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
+    first_done = threading.Event()
+    # faiss and OpenCV single-threaded for the whole run: the concurrency is across pairs (and the per-search save /
+    # set / restore of faiss's global thread count, prepared._faiss_threads, then only ever writes 1, so concurrent
+    # searches cannot race on it)
+    with _faiss_threads(1), _opencv_threads(1), \
+            cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
+        # the first pair loads Numba's kernels (~0.25 s holding the GIL); meanwhile one pool thread builds the indexes
+        # the first pairs will search (faiss releases the GIL), until a pair has finished (module doc, "Start-up")
+        prefetch = pool.submit(_prefetch_indexes, cache, _index_order(queue), first_done)
+
         def fill() -> None:
             while len(inflight) < 2 * threads:
                 if not pending:
@@ -674,21 +694,77 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
                     pending.popleft()
                 inflight[pool.submit(one, a, b)] = (entry, a, b)
 
-        fill()
-        while inflight:
-            finished, _ = cf.wait(list(inflight), return_when=cf.FIRST_COMPLETED)
-            for fut in finished:
-                entry, a, b = inflight.pop(fut)
-                exc = fut.exception()
-                out = fut.result() if exc is None else PairOutcome(
-                    a, b, False, f"{type(exc).__name__}: {exc}", stats=dict(worker="in-process"))
-                entry[2] -= 1
-                if entry[2] == 0:  # the task's last pair
-                    queue.finished(entry[0])
-                writer.handle(out)
+        try:
             fill()
+            while inflight:
+                finished, _ = cf.wait(list(inflight), return_when=cf.FIRST_COMPLETED)
+                for fut in finished:
+                    entry, a, b = inflight.pop(fut)
+                    exc = fut.exception()
+                    out = fut.result() if exc is None else PairOutcome(
+                        a, b, False, f"{type(exc).__name__}: {exc}", stats=dict(worker="in-process"))
+                    entry[2] -= 1
+                    if entry[2] == 0:  # the task's last pair
+                        queue.finished(entry[0])
+                    first_done.set()
+                    writer.handle(out)
+                fill()
+        finally:
+            first_done.set()  # also when the loop raises: the prefetch stops before the pool shuts down
+        prefetched = prefetch.result()
     hits, loads, load_s = cache.counters()
-    return dict(cache_hits=hits, image_loads=loads, workers=1, threads=threads)
+    return dict(cache_hits=hits, image_loads=loads, workers=1, threads=threads, prefetched=prefetched,
+                prefetch_loads=cache.prefetch_loads)
+
+
+def _index_order(queue: _Queue) -> list[str]:
+    """The images whose approximate index the queued pairs search (each pair's second image), in the order the
+    in-process runner reaches them."""
+    order: dict[str, None] = {}
+    for tasks in queue.plan.values():
+        for task in tasks:
+            for _, b in task:
+                order.setdefault(b, None)
+    return list(order)
+
+
+def _prefetch_indexes(cache: _ImageCache, names: list[str], stop: threading.Event) -> int:
+    """Load (prepare) ``names`` in order and build their approximate indexes until ``stop`` is set or the cache is
+    full; returns how many were built. Every one is needed later (the pairs that search it are queued), so nothing
+    is wasted unless the cache evicts it first; a failing load is left to the pair that needs it (reported there)."""
+    built = 0
+    for name in names:
+        if stop.is_set() or cache.bytes >= cache.spec.cache_bytes:
+            break
+        try:
+            prepared = cache.get(name, (name,), count_hit=False).prepared
+            if getattr(prepared, "has_index", False):
+                prepared.index()
+                built += 1
+        except Exception:  # noqa: BLE001 - the pair's own load reports it
+            break
+    return built
+
+
+class _opencv_threads:
+    """OpenCV's thread count inside the block (restored after; a no-op without OpenCV)."""
+
+    def __init__(self, n: int):
+        self.n, self.old = n, None
+
+    def __enter__(self):
+        with contextlib.suppress(Exception):
+            import cv2
+
+            self.old = cv2.getNumThreads()
+            cv2.setNumThreads(self.n)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.old is not None:
+            import cv2
+
+            cv2.setNumThreads(self.old)
 
 
 def _start_local_cluster(n: int):
@@ -950,7 +1026,9 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                   verified_pairs=int(s["verified_pairs"]), verdicts=dict(writer.verdicts),
                   load_s=float(s["load_s"]),
                   match_s=float(s["match_s"]), cache_hits=facts["cache_hits"],
-                  image_loads=facts["image_loads"], images=len(nfeat), startup_s=startup_s, shutdown_s=shutdown_s,
+                  image_loads=facts["image_loads"], prefetched_indexes=facts.get("prefetched", 0),
+                  prefetched_images=facts.get("prefetch_loads", 0), images=len(nfeat),
+                  startup_s=startup_s, shutdown_s=shutdown_s,
                   pairs_per_s=writer.done / wall if wall > 0 else 0.0, chunk_pairs=chunk,
                   max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process"
                   else (1 if facts.get("threads", 1) <= 1 else 2 * facts["threads"]),

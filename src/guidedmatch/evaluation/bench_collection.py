@@ -184,6 +184,9 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
         raise FileNotFoundError(f"Herz-Jesus-P8 images not found: {image_dir}")
     work.mkdir(parents=True, exist_ok=True)
     meta = run_metadata()
+    from .._runtime import byte_compile_package
+
+    meta["byte_compiled"] = byte_compile_package()  # as an installed copy is (no per-process compile of our modules)
     result = dict(meta=meta, threads=THREADS, images=str(image_dir), sets={}, run_note=note,
                   note=f"load average {meta['load_average'] or float('nan'):.1f} when the run started (2 cores): wall "
                        "times are noisy when it is > 1")

@@ -406,7 +406,9 @@ def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None
     explicit = methods is not None
     work = Path(work) if work is not None else out / "work"
     rows = []
-    results = {"meta": run_metadata(seed), "command": command, "scene": str(scene), "threads": threads,
+    from .._runtime import byte_compile_package
+
+    results = {"meta": {**run_metadata(seed), "byte_compiled": byte_compile_package()}, "command": command, "scene": str(scene), "threads": threads,
                "methods": methods, "settings": list(settings), "rows": rows, "end_to_end": None,
                "note": "wall-clock times on 2 cores (see meta.load_average); same features for all methods"}
     old_rows, old_e2e = [], None

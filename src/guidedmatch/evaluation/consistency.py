@@ -60,6 +60,10 @@ class ModelJudge:
         """``name`` is a registered image of the model."""
         return name in self._images
 
+    def xyz(self, point_id: int) -> np.ndarray:
+        """``(3,)`` world position of the model's 3-D point ``point_id``."""
+        return self._xyz[int(point_id)]
+
     def point_ids(self, name: str) -> np.ndarray:
         """``(K,) int64`` 3-D point id of each keypoint of ``name`` (-1: none)."""
         ids = self._point_ids.get(name)

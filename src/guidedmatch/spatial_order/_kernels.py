@@ -47,7 +47,7 @@ def _kendall_step(tree, v, lo, size, cnt, kk):  # pragma: no cover - numba
     return cnt + 1, kk
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _inversions_dense(r, nvals):  # pragma: no cover - numba
     """H^l, H^r for a sequence of dense ranks ``r`` (ties allowed, not inversions) via a Fenwick tree."""
     n = r.shape[0]
@@ -72,7 +72,7 @@ def _inversions_dense(r, nvals):  # pragma: no cover - numba
 # --------------------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _sweep_kendall(seq, lo, hi, bounds, out_k, out_n):  # pragma: no cover - numba
     """For every start block a and end bound c > a: inversions / count among ``seq[bounds[a]:bounds[c]]``
     restricted to values in ``[lo, hi)``; an inversion is an earlier element with a larger value."""
@@ -97,7 +97,7 @@ def _sweep_kendall(seq, lo, hi, bounds, out_k, out_n):  # pragma: no cover - num
                     break
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _window_kendall(sigma, i1l, i1h, i2l, i2h):  # pragma: no cover - numba
     """(K, n) of the matches with image-1 rank in [i1l, i1h) and image-2 rank in [i2l, i2h)."""
     size = i2h - i2l + 1
@@ -113,7 +113,7 @@ def _window_kendall(sigma, i1l, i1h, i2l, i2h):  # pragma: no cover - numba
     return kk, cnt
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _ng_scalar(kk, cnt):  # pragma: no cover - numba
     """N_G (Talker Eq. 8/10) of a window with kk inversions among cnt matches; 0 when cnt < 2."""
     if cnt < 2:
@@ -129,7 +129,7 @@ def _ng_scalar(kk, cnt):  # pragma: no cover - numba
     return min(max(r, 0.0), float(cnt))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _profile(seq, lo, hi, start, stop, step):  # pragma: no cover - numba
     """N_G after each position of a sweep over ``seq[start], seq[start+step], ...`` (stop exclusive), counting only
     values in [lo, hi). step=+1: appending (inversion = earlier larger value); step=-1: prepending (smaller)."""
@@ -160,7 +160,7 @@ def _profile(seq, lo, hi, start, stop, step):  # pragma: no cover - numba
     return ng, cn
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _refine_window_nb(sigma, inv, w0, span, step, max_passes):  # pragma: no cover - numba
     """Coordinate ascent of N_G over the 4 window ends (see _refine_window)."""
     n = sigma.shape[0]
@@ -230,7 +230,7 @@ def _refine_window_nb(sigma, inv, w0, span, step, max_passes):  # pragma: no cov
 # --------------------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _logfact_table(n):  # pragma: no cover - numba
     t = np.zeros(n + 2)
     for i in range(1, n + 2):
@@ -238,7 +238,7 @@ def _logfact_table(n):  # pragma: no cover - numba
     return t
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _log_hyp(lf, n, k, pop, succ):  # pragma: no cover - numba
     """log Hyp(n draws, k successes; population pop with succ successes); -inf outside the support."""
     if k < 0 or k > n or k > succ or n - k > pop - succ or n > pop or succ < 0:
@@ -247,7 +247,7 @@ def _log_hyp(lf, n, k, pop, succ):  # pragma: no cover - numba
             - (lf[pop] - lf[n] - lf[pop - n]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _exact_lik_good(left1, left2, h, n_others, n_bad, nsd):  # pragma: no cover - numba
     """Exact P(H = h | G) for each entry (hypergeometric sums, Teng & Dong Eq. 7-9), beta within nsd sd."""
     m = left1.shape[0]
@@ -306,7 +306,7 @@ def _gap_cell_moments(m1h, s1h, m2k, s2k, nb, fm, ca, cb, cc, var_floor):  # pra
     return mu, vh + var_mu + var_floor
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, nogil=True)
 def _row_var_max(m1h, s1h, m2, s2, nb, fm, ca, cb, cc, var_floor):  # pragma: no cover - numba
     """max over k of the gap kernel's var(h, k) (vectorized; fast-math, so the caller adds a relative margin)."""
     v = var_floor
@@ -315,7 +315,7 @@ def _row_var_max(m1h, s1h, m2, s2, nb, fm, ca, cb, cc, var_floor):  # pragma: no
     return v * (1.0 + 1e-6)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th, var_floor,
                 log_out, mean_shift):  # pragma: no cover - numba
     """Fused pass over the (n+1)^2 gap table: C by incremental prefix sums, Gaussian P(H|G), threshold, runs."""
