@@ -393,6 +393,42 @@ def test_build_strips_invariants(case):
     assert len(offsets) == ns * nk + 1
 
 
+def _build_strips_numpy(pts, width, axis=0, cell=None):
+    """The NumPy formulation build_strips had before its nogil kernel (the reference it must reproduce exactly)."""
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    width = float(width)
+    cell = float(cell) if cell else width / 6.0
+    n = len(pts)
+    u, v = pts[:, axis], pts[:, 1 - axis]
+    u0, k0 = float(u.min()), float(v.min())
+    su, sv = float(u.max()) - u0, float(v.max()) - k0
+    budget = 4 * n + 4096
+    width = max(width, su / (budget // 4) * (1.0 + 1e-12))
+    ns = int(su // width) + 1
+    kmax = budget // ns
+    cell = max(cell, sv / (kmax - 1) * (1.0 + 1e-12))
+    nk = int(sv // cell) + 1
+    sid = np.minimum(((u - u0) // width).astype(np.int64), ns - 1)
+    kid = np.minimum(((v - k0) // cell).astype(np.int64), nk - 1)
+    key = sid * nk + kid
+    items = np.argsort(key, kind="stable")
+    offsets = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=ns * nk))])
+    return u0, ns, width, k0, nk, cell, offsets, items, pts[items]
+
+
+@settings(max_examples=150, deadline=None)
+@given(case=point_sets())
+def test_build_strips_kernel_equals_the_numpy_formulation(case):
+    pts, width, axis, cell = case
+    if len(pts) == 0:
+        return
+    got = kernels.build_strips(pts, width, axis=axis, cell=cell)
+    ref = _build_strips_numpy(pts, width, axis=axis, cell=cell)
+    assert tuple(got[:6]) == tuple(ref[:6])
+    for a, b in zip(got[6:], ref[6:]):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_build_strips_table_bounded_for_1e7_spread():
     rng = np.random.default_rng(3)
     for n in (1, 2, 50, 300):
