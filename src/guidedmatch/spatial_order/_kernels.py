@@ -408,3 +408,108 @@ def _gap_kernel(sigma, m1, s1, m2, s2, blo, bhi, nb, log_pg, log_pb, log_odds_th
             k += 1
         ptr[h + 1] = nr
     return gap_lo, gap_hi, count, ptr, runs[:nr].copy()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# One candidate window and its Gaussian model (model._window_fit; probability.probability_correct, "gaussian")
+# --------------------------------------------------------------------------------------------------------------
+
+
+@njit(inline="always", cache=True)
+def _beta_moments_1(left, no, nb, nodes, weights):  # pragma: no cover - numba
+    """probability._beta_moments for one ``left`` (``no >= 1``, ``0 <= nb <= no``), same operation order."""
+    p = nb / no
+    mean = left * p
+    var = left * p * (1.0 - p) * (no - left) / max(no - 1.0, 1.0)
+    sd = math.sqrt(max(var, 0.0))
+    lo_s = max(0.0, left - (no - nb))
+    hi_s = max(min(left, nb), lo_s)
+    m = 0.0
+    s = 0.0
+    for t in range(nodes.shape[0]):
+        b = min(max(mean + sd * nodes[t], lo_s), hi_s)
+        m += b * weights[t]
+        s += b * b * weights[t]
+    return m, s
+
+
+@njit(cache=True, nogil=True)
+def _window_fit_gaussian(sigma, i1_lo, i1_hi, i2_lo, i2_hi, nodes, weights, var_floor, p_clip_lo, p_clip_hi,
+                         out_of_range):  # pragma: no cover - numba
+    """:func:`guidedmatch.spatial_order.model._window_fit` with the Gaussian ``P(H | G)`` in one pass without the
+    GIL: the matches inside the window, their re-ranked sub-permutation, inversions, K_hat, N_G (Eq. 8) and
+    ``P(G | H)`` per match (Eq. 12 via probability.probability_correct). Returns ``nw = 0`` arrays when fewer than
+    2 matches are inside. Same formulas and operation order as the NumPy functions (results agree to rounding)."""
+    n = sigma.shape[0]
+    nw = 0
+    for i in range(i1_lo, i1_hi):
+        if sigma[i] >= i2_lo and sigma[i] < i2_hi:
+            nw += 1
+    ranks1 = np.empty(nw, np.int64)
+    ranks2 = np.empty(nw, np.int64)
+    k = 0
+    for i in range(i1_lo, i1_hi):
+        if sigma[i] >= i2_lo and sigma[i] < i2_hi:
+            ranks1[k] = i
+            ranks2[k] = sigma[i]
+            k += 1
+    if nw < 2:
+        z = np.zeros(0, np.int64)
+        return ranks1, ranks2, z, z, z, 0.0, 0.0, np.zeros(0)
+    # dense rank of each image-2 rank among the selected ones (the cumsum of a 0/1 mark, minus 1)
+    dense = np.full(n, -1, np.int64)
+    for t in range(nw):
+        dense[ranks2[t]] = 0
+    c = 0
+    for v in range(n):
+        if dense[v] == 0:
+            dense[v] = c
+            c += 1
+    sigma_w = np.empty(nw, np.int64)
+    for t in range(nw):
+        sigma_w[t] = dense[ranks2[t]]
+    hl, hr = _inversions_dense(sigma_w, nw)
+    kk = 0
+    for t in range(nw):
+        kk += hl[t]
+    k_hat = 2.0 * float(kk) / (nw * (nw - 1.0))
+    n_good = _ng_scalar(kk, nw)
+    # probability_correct(arange(nw), sigma_w, hl + hr, nw - 1, n_good, nw, method="gaussian")
+    n_others = nw - 1.0
+    p_good = min(max(n_good / max(float(nw), 1.0), p_clip_lo), p_clip_hi)
+    g_under_g = max(n_good - 1.0, 0.0)
+    g_under_b = min(n_good, n_others)
+    no = max(n_others, 1.0)
+    nb = min(max(max(n_others - g_under_g, 0.0), 0.0), no)  # good_inversion_moments' nb, clipped by _beta_moments
+    nbc = max(n_others - g_under_g, 0.0)                   # the unclipped nb of _cell_moments
+    gb = min(max(g_under_b, 0.0), no)
+    bb = no - gb
+    log_pb0 = math.log(1.0 - p_good)
+    log_pg = math.log(p_good)
+    log_out = math.log(out_of_range)
+    prob = np.empty(nw)
+    for t in range(nw):
+        h = float(hl[t] + hr[t])
+        m1, s1 = _beta_moments_1(float(t), no, nb, nodes, weights)
+        m2, s2 = _beta_moments_1(float(sigma_w[t]), no, nb, nodes, weights)
+        if nbc < 1e-9:
+            mu = 0.0
+            var = var_floor
+        else:
+            mu = m1 + m2 - 2.0 * m1 * m2 / nbc
+            e2 = s1 + s2 + 2.0 * m1 * m2 - 4.0 * (s1 * m2 + m1 * s2) / nbc + 4.0 * s1 * s2 / (nbc * nbc)
+            var_mu = max(e2 - mu * mu, 0.0)
+            vh = 2.0 * (nbc * m1 - s1) * (nbc * m2 - s2) / (nbc * nbc * (nbc - 1.0)) if nbc > 1.0 else 0.0
+            var = max(vh, 0.0) + var_mu + var_floor
+        loglik = -0.5 * math.log(2.0 * math.pi * var) - (h - mu) ** 2 / (2.0 * var)
+        # uniform P(H | B) between probability.bad_inversion_range's bounds
+        x = min(max(float(t) / no, 0.0), 1.0)
+        hx = 2.0 * bb * x * (1.0 - x)
+        h0 = no * x
+        h1 = no * (1.0 - x)
+        lo = max(min(min(hx, h0), h1) - 2.0 * math.sqrt(2.0 * bb * x * (1.0 - x)) - 1.0, 0.0)
+        hi = max(h0, h1)
+        log_pb = log_pb0 - math.log(hi - lo + 1.0) + (0.0 if (h >= lo and h <= hi) else log_out)
+        log_a = log_pg + loglik
+        prob[t] = 1.0 / (1.0 + math.exp(min(max(log_pb - log_a, -700.0), 700.0)))
+    return ranks1, ranks2, sigma_w, hl, hr, k_hat, n_good, prob
