@@ -44,12 +44,14 @@ Results stream back to ONE writer -- the caller's sink in this process -- in com
 
 Start-up (in-process, threads >= 2)
 -----------------------------------
-The first pair of a process loads Numba's kernels from its cache (~0.25 s holding the GIL, 0.13 s of it SciPy's
-``scipy.linalg``, which Numba imports to look for BLAS). Meanwhile one pool thread loads the images the queued pairs
-search, in the order they are reached, and builds their approximate indexes (faiss releases the GIL), until the
-first pair has finished; the report's ``prefetched_images`` / ``prefetched_indexes`` count them. Every index built this way is one a queued
-pair needs, so it is work moved earlier, not added. Herz-Jesus-P8, 8192 SIFT, 28 pairs, 10 alternating runs each of
-``guidedmatch colmap DB --pairs exhaustive``: median 1.94 -> 1.78 s (docs/collections.md).
+Numba's CPU target is set up once per process (~0.3 s holding the GIL, 0.13 s of it SciPy's ``scipy.linalg``, which
+Numba imports to look for BLAS). One pool thread does that first (:func:`_load_numba`); meanwhile the other loads the
+images the queued pairs search, in the order they are reached, and builds their approximate indexes (faiss releases
+the GIL), until the first pair has finished; the report's ``prefetched_images`` / ``prefetched_indexes`` count
+them. Every index built this way is one a queued pair needs, so it is work moved earlier, not added. Herz-Jesus-P8,
+8192 SIFT, 28 pairs, 10 alternating fresh runs each of ``guidedmatch colmap DB --pairs exhaustive``
+(``tools/ab_collection.py``): the prefetch 1.99 -> 1.86 s, the Numba set-up first 1.61 -> 1.54 s (medians;
+docs/collections.md).
 
 Memory bound
 ------------
@@ -696,6 +698,7 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
         # the first pair loads Numba's kernels (~0.25 s holding the GIL); meanwhile one pool thread builds the indexes
         # the first pairs will search (faiss releases the GIL), until a pair has finished (module doc, "Start-up")
         prefetch = pool.submit(_prefetch_indexes, cache, _index_order(queue), first_done)
+        pool.submit(_load_numba)  # Numba's set-up now, not after the first pair's own loads and index search
 
         def fill() -> None:
             while len(inflight) < 2 * threads:
@@ -731,6 +734,14 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
     hits, loads, load_s = cache.counters()
     return dict(cache_hits=hits, image_loads=loads, workers=1, threads=threads, prefetched=prefetched,
                 prefetch_loads=cache.prefetch_loads)
+
+
+def _load_numba() -> None:
+    """Set Numba's CPU target up (~0.3 s holding the GIL, once per process) by loading its smallest cached kernel:
+    the first pair then starts with it done, while the other pool thread builds indexes."""
+    from .. import kernels
+
+    kernels.counting_order(np.zeros(1, np.int64), 1)
 
 
 def _index_order(queue: _Queue) -> list[str]:
