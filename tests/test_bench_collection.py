@@ -46,3 +46,33 @@ def test_collection_timeline_draws_this_runs_matched_pairs(tmp_path):
     assert out == tmp_path / "t.png" and matplotlib.image.imread(out).shape[1] > 500
     assert collection_timeline(tmp_path / "none.png", [dict(status="failed", reason="x")]) is None
     assert not (tmp_path / "none.png").exists()
+
+
+def test_repeat_runs_alternate_the_order_and_report_medians(monkeypatch, tmp_path):
+    from guidedmatch.evaluation import bench_collection as bc
+
+    calls = []
+    fake = {"colmap": 3.0, "ours": 1.5, "1": 12.0, "2": 8.0}
+
+    def colmap_match(db):
+        calls.append("colmap")
+        return dict(wall_s=fake["colmap"] + len(calls) / 100, returncode=0)
+
+    def ours(db, log, *extra):
+        key = extra[-1] if extra else "ours"
+        calls.append(key)
+        return dict(wall_s=fake[key] + len(calls) / 100, returncode=0, stderr_tail=[])
+
+    monkeypatch.setattr(bc, "colmap_match", colmap_match)
+    monkeypatch.setattr(bc, "ours", ours)
+    row = dict(colmap=dict(wall_s=3.3), ours=dict(wall_s=1.4), workers_1=dict(wall_s=12.5), workers_2=dict(wall_s=7.9))
+    rep = bc._repeat_runs(row, 3, True, lambda tag: tmp_path / f"{tag}.db", tmp_path / "rep.jsonl")
+    # round 1 reversed, round 2 in order: neither method always runs first
+    assert calls == ["ours", "colmap", "2", "1", "colmap", "ours", "1", "2"]
+    assert rep["colmap"]["walls"][0] == 3.3 and len(rep["colmap"]["walls"]) == 3
+    assert rep["ours"]["median"] == sorted(rep["ours"]["walls"])[1]
+    assert rep["workers_2"]["min"] == min(rep["workers_2"]["walls"]) and rep["workers_1"]["max"] == 12.5
+    # without scaling only COLMAP and ours repeat
+    calls.clear()
+    rep = bc._repeat_runs(row, 2, False, lambda tag: tmp_path / f"{tag}.db", tmp_path / "rep.jsonl")
+    assert calls == ["ours", "colmap"] and set(rep) == {"colmap", "ours"}

@@ -361,7 +361,8 @@ def cmd_bench(args) -> int:
         root = data_root(args.data)
         if root is None or not (root / DATA_REL).is_dir():
             raise InputError(f"no Herz-Jesus-P8 images under {root}/{DATA_REL}: pass --data DIR or set GUIDEDMATCH_DATA")
-        return bench_collection(["--data", str(root), "--out", str(Path(args.out) / "collection")])
+        return bench_collection(["--data", str(root), "--out", str(Path(args.out) / "collection")]
+                                + (["--repeats", str(args.repeats)] if args.repeats else []))
     run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
                    detector=args.detector, seed=args.seed)
     return 0
@@ -628,7 +629,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
     b.add_argument("--repeats", type=_positive_int, default=None,
                    help="timing repeats per method (median); sfm: runs of each end-to-end pipeline (median, "
-                        "alternating order)")
+                        "alternating order); collection: runs of COLMAP vs ours and of 1 vs 2 workers (alternating)")
     b.add_argument("--detector", default="sift", choices=DETECTORS)
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--scene", default=None, help="sfm: scene folder with images/ and gt_dense_cameras/ (Strecha "

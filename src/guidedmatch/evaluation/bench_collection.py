@@ -176,8 +176,32 @@ print(len(recs), 0 if best is None else best.num_reg_images(), time.perf_counter
     return dict(models=int(n_models), registered=int(registered), time_s=float(t))
 
 
+def _repeat_runs(row: dict, repeats: int, scaling: bool, copy, log: Path) -> dict:
+    """``repeats - 1`` more rounds of COLMAP vs ours (and, with ``scaling``, 1 vs 2 local workers), each on a fresh
+    copy of the database, the order alternating from round to round; with the first runs already in ``row``:
+    ``{method: {"walls", "median", "min", "max"}}``. A single run moves by +-0.1-0.2 s at ~2 s on this machine."""
+    import statistics
+
+    walls = {"colmap": [row["colmap"]["wall_s"]], "ours": [row["ours"]["wall_s"]]}
+    runs = {"colmap": lambda: colmap_match(copy("rep-colmap")), "ours": lambda: ours(copy("rep-ours"), log)}
+    if scaling:
+        walls.update(workers_1=[row["workers_1"]["wall_s"]], workers_2=[row["workers_2"]["wall_s"]])
+        runs.update(workers_1=lambda: ours(copy("rep-w1"), log, "--workers", "1"),
+                    workers_2=lambda: ours(copy("rep-w2"), log, "--workers", "2"))
+    for i in range(repeats - 1):
+        for pair in (("colmap", "ours"), ("workers_1", "workers_2")):
+            for key in (pair if i % 2 else pair[::-1]):
+                if key in runs:
+                    r = runs[key]()
+                    if r["returncode"] != 0:
+                        raise RuntimeError(f"repeat run {key} failed: {r['stderr_tail']}")
+                    walls[key].append(r["wall_s"])
+    return {k: dict(walls=v, median=statistics.median(v), min=min(v), max=max(v)) for k, v in walls.items()}
+
+
 def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), scaling: bool = True, note: str = "",
-        map_colmap_sets=("default", "mixed"), reuse: bool = False, data_root: Path | None = None) -> dict:
+        map_colmap_sets=("default", "mixed"), reuse: bool = False, data_root: Path | None = None,
+        repeats: int = 1) -> dict:
     from .meta import run_metadata, write_json
 
     if not image_dir.is_dir():
@@ -211,6 +235,9 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
 
         def copy(tag: str) -> Path:
             p = work / f"{name}-{tag}.db"
+            for stale in (p.with_name(p.name + x) for x in ("-wal", "-shm", ".lock")):
+                if stale.exists():
+                    stale.unlink()
             shutil.copy(base, p)
             return p
 
@@ -246,6 +273,8 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
                 wdb = copy(f"w{w}")
                 row[f"workers_{w}"] = ours(wdb, work / f"{name}-w{w}.jsonl", *WORKER_RUNS[w].split())
                 row[f"workers_{w}"]["db"] = db_stats(wdb)
+        if repeats > 1:
+            row["repeats"] = _repeat_runs(row, repeats, scaling, copy, work / f"{name}-rep.jsonl")
         c, o = row["colmap"], row["ours"]
         row["ratios"] = dict(
             time_ours_over_colmap=o["wall_s"] / c["wall_s"],
@@ -254,6 +283,11 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
             workers_2_over_1_matching=(row["workers_2"]["summary"]["wall_s"] / row["workers_1"]["summary"]["wall_s"])
             if scaling else None,
             threads_2_over_1=(row["workers_0"]["wall_s"] / row["workers_0t1"]["wall_s"]) if scaling else None)
+        if "repeats" in row:
+            rp = row["repeats"]
+            row["ratios"]["time_ours_over_colmap_median"] = rp["ours"]["median"] / rp["colmap"]["median"]
+            if scaling:
+                row["ratios"]["workers_2_over_1_median"] = rp["workers_2"]["median"] / rp["workers_1"]["median"]
         result["sets"][name] = row
         write_json(out_dir / "collection.json", result)
     (out_dir / "collection.md").write_text(markdown(result))
@@ -304,6 +338,25 @@ def markdown(result: dict) -> str:
                      f"{fmt(q.get('threads_2_over_1'))} |")
     lines += ["", "inner = time inside the process: COLMAP's match_exhaustive call; ours: the engine's wall time "
               "(matching, verdicts, writes, cluster start/stop), without the Python start-up and imports.", ""]
+    rep = {n: r["repeats"] for n, r in result["sets"].items() if "repeats" in r}
+    if rep:
+        lines += ["**Repeated runs** (fresh processes on fresh database copies, the order alternating from round to "
+                  "round; median (min-max) of the wall times, the first runs above included):", "",
+                  "| features | runs | COLMAP (s) | ours (s) | ours / COLMAP (medians) | 1 worker (s) | 2 workers (s) | "
+                  "2 / 1 workers (medians) |", "|---|---|---|---|---|---|---|---|"]
+
+        def mm(d):
+            return f"{d['median']:.2f} ({d['min']:.2f}-{d['max']:.2f})" if d else "-"
+
+        for name, r in rep.items():
+            q = result["sets"][name]["ratios"]
+            w1, w2 = r.get("workers_1"), r.get("workers_2")
+            lines.append(f"| {name} | {len(r['ours']['walls'])} | {mm(r['colmap'])} | {mm(r['ours'])} | "
+                         f"{q['time_ours_over_colmap_median']:.2f} | {mm(w1)} | {mm(w2)} | "
+                         f"{q['workers_2_over_1_median']:.2f} |" if w1 else
+                         f"| {name} | {len(r['ours']['walls'])} | {mm(r['colmap'])} | {mm(r['ours'])} | "
+                         f"{q['time_ours_over_colmap_median']:.2f} | - | - | - |")
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -379,11 +432,13 @@ def main(argv=None) -> int:
     p.add_argument("--no-scaling", action="store_true", help="skip the --workers 0/1/2 runs")
     p.add_argument("--note", default="", help="what code ran (recorded in the JSON and the table)")
     p.add_argument("--reuse", action="store_true", help="reuse WORK/<set>.db of an earlier run (no re-extraction)")
+    p.add_argument("--repeats", type=int, default=1, help="runs of COLMAP vs ours and of 1 vs 2 workers per set, in "
+                   "alternating order (medians reported next to the first run); default 1")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     res = run(Path(a.images) if a.images else Path(a.data) / DATA_REL, out, Path(a.work), tuple(a.sets.split(",")), scaling=not a.no_scaling, note=a.note,
-              reuse=a.reuse, data_root=Path(a.data))
+              reuse=a.reuse, data_root=Path(a.data), repeats=max(1, a.repeats))
     print(markdown(res))
     return 0
 
