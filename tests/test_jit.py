@@ -79,7 +79,8 @@ print("USED", sorted(n for m in (kernels, so) for n, v in vars(m).items() if get
     assert "FOREGROUND_COMPILE 0.0" in out.stdout, out.stdout
     used = out.stdout.split("USED")[1]
     for name in ("_guided_ser", "top2_gemm_serial", "counting_order", "_gap_kernel",
-                 "_refine_window_nb", "_sweep_kendall", "_inversions_dense", "_window_fit_gaussian"):
+                 "_refine_window_nb", "_sweep_kendall", "_inversions_dense", "_window_fit_gaussian",
+                 "_strip_layout", "search_regions_kernel"):
         assert f"'{name}'" in used  # the warm-ups did reach (load) every kernel: the check above is not vacuous
     assert out.stdout.count("compiling Numba kernels") == 1
 

@@ -758,3 +758,31 @@ def test_ransac_draws_formula(w):
     assert p_miss == pytest.approx(0.001, rel=1e-6)
     assert _ransac_draws(SimpleNamespace(evidence=dict(F_inliers_raw=0, num_evidence=50))) == float("inf")
     assert _ransac_draws(SimpleNamespace(evidence=dict(F_inliers_raw=50, num_evidence=50))) == 1.0
+
+
+@settings(max_examples=80, deadline=None)
+@given(n=st.integers(30, 300), good=st.floats(0.3, 1.0), seed=st.integers(0, 2**31 - 1), with_f=st.booleans(),
+       outside=st.sampled_from(["drop", "band"]), degenerate=st.booleans())
+def test_search_regions_kernel_equals_the_numpy_formulation(n, good, seed, with_f, outside, degenerate):
+    """The nogil search-region kernel against admissible_x_ranges + map_points (exact: same arithmetic)."""
+    from guidedmatch.matcher import _search_regions_numpy, search_regions
+    from guidedmatch.spatial_order import fit_spatial_order
+    from guidedmatch.testing.permutations import generate_permutation
+
+    rng = np.random.default_rng(seed)
+    sp = generate_permutation(n, max(2, int(good * n)), seed=seed)
+    so = fit_spatial_order(sp.x1, sp.x2)
+    q = np.c_[rng.uniform(-50, 1050, 200), rng.uniform(-50, 700, 200)]
+    q[:3, 0] = [so.x1_sorted[0], so.x1_sorted[-1], so.window1_x[1]] if so else q[:3, 0]  # on the boundaries
+    F = rng.normal(size=(3, 3)) if with_f else None
+    if with_f and degenerate:
+        F[:2, :] = 0.0  # every line degenerate: (0, 0, inf)
+    rescue = (float(np.min(q[:, 0])), float(np.median(q[:, 0])))
+    for model in (so, None):
+        got = search_regions(q, model, F, rescue, outside)
+        ref = _search_regions_numpy(q, model, F, rescue, outside)
+        for a, b in zip(got, ref):
+            if b is None:
+                assert a is None
+            else:
+                np.testing.assert_array_equal(a, b)

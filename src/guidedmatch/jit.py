@@ -170,7 +170,7 @@ def _precompile(detector: str, group: str) -> None:
       the exact-uint8 descriptor check; then the guided candidate kernel of ``detector``'s descriptor kind and the
       strip index's counting sort (every guided mode);
     * ``"order"``: the spatial-order kernels (modes with ``so``), through :func:`~guidedmatch.spatial_order.
-      fit_spatial_order` and a lookup on a synthetic monotone match set with outliers.
+      fit_spatial_order` and a lookup on a synthetic monotone match set with outliers, and the search-region kernel.
 
     A group that misses a specialization costs nothing but time: the caller's warm-up compiles whatever is not in
     the cache (and reports it).
@@ -203,6 +203,9 @@ def _precompile(detector: str, group: str) -> None:
         y = rng.uniform(0, 800, m)
         model = fit_spatial_order(x1, x2, y1=y, y2=y, likely_correct=np.arange(m) >= 30)
         admissible_x_ranges(model, x1[:8] + 0.5)
+        from .matcher import search_regions
+
+        search_regions(np.c_[x1[:8], y[:8]], model, np.eye(3), (0.0, 1000.0), "band")  # the region kernel
     else:
         raise ValueError(f"unknown kernel group {group!r}")
 

@@ -12,6 +12,7 @@ Index ``-1`` and distance ``+inf`` mean "no such candidate".
 """
 from __future__ import annotations
 
+import math
 import os
 import threading
 from typing import NamedTuple
@@ -289,6 +290,64 @@ def _strip_layout(pts, axis, width, cell):
         ps[r, 0] = pts[items[r], 0]
         ps[r, 1] = pts[items[r], 1]
     return umin, ns, width, vmin, nk, cell, offsets, items, ps
+
+
+@njit(cache=True, nogil=True)
+def search_regions_kernel(p, use_so, x1_sorted, gap_lo, gap_hi, x1_lo, x1_hi, x2_sorted, nw, rescue, r_lo, r_hi,
+                          use_F, F):  # pragma: no cover - numba
+    """:func:`guidedmatch.matcher.search_regions` for ``p (Q, 2)`` aligned image-1 points: ``(keep, lo, hi, lines,
+    rescued)``. Spatial order (``use_so``): the image-1 gap ``h`` (searchsorted left in ``x1_sorted``), kept when
+    ``x1_lo <= x <= x1_hi`` and ``gap_lo[h] <= gap_hi[h]``, x-range ``[x2(gap_lo - 1), x2(gap_hi)]`` with
+    ``x2(-1) = -inf``, ``x2(nw) = +inf`` (NaN when not kept); ``rescue``: not kept but ``r_lo <= x <= r_hi`` -> kept,
+    unbounded. Epipolar (``use_F``): the line ``F (x, y, 1)`` scaled to a unit normal, ``(0, 0, inf)`` when
+    degenerate. Same arithmetic as the NumPy formulation."""
+    q = p.shape[0]
+    keep = np.ones(q, np.bool_)
+    lo = np.full(q, -np.inf)
+    hi = np.full(q, np.inf)
+    rescued = np.zeros(q, np.bool_)
+    lines = np.empty((q if use_F else 0, 3))
+    n1 = x1_sorted.shape[0]
+    for i in range(q):
+        x = p[i, 0]
+        if use_so:
+            a, b = 0, n1  # searchsorted(x1_sorted, x, side="left")
+            while a < b:
+                m = (a + b) >> 1
+                if x1_sorted[m] < x:
+                    a = m + 1
+                else:
+                    b = m
+            glo = gap_lo[a]
+            ghi = gap_hi[a]
+            k = x >= x1_lo and x <= x1_hi and glo <= ghi
+            if k:
+                c0 = min(max(glo, 0), nw)
+                c1 = min(max(ghi, 0), nw)
+                lo[i] = -np.inf if c0 == 0 else x2_sorted[c0 - 1]
+                hi[i] = np.inf if c1 == nw else x2_sorted[c1]
+            elif rescue and x >= r_lo and x <= r_hi:
+                rescued[i] = True
+                k = True
+            else:
+                lo[i] = np.nan
+                hi[i] = np.nan
+            keep[i] = k
+        if use_F:
+            y = p[i, 1]
+            la = F[0, 0] * x + F[0, 1] * y + F[0, 2]
+            lb = F[1, 0] * x + F[1, 1] * y + F[1, 2]
+            lc = F[2, 0] * x + F[2, 1] * y + F[2, 2]
+            nrm = math.hypot(la, lb)
+            if nrm > 1e-12:
+                lines[i, 0] = la / nrm
+                lines[i, 1] = lb / nrm
+                lines[i, 2] = lc / nrm
+            else:
+                lines[i, 0] = 0.0
+                lines[i, 1] = 0.0
+                lines[i, 2] = np.inf
+    return keep, lo, hi, lines, rescued
 
 
 @njit(cache=True, nogil=True)

@@ -293,7 +293,34 @@ def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x
     the epipolar band's line (§III-D) when ``F_aligned`` is given. With ``outside_window="band"``, features outside
     ω* whose x lies in ``inlier_x1_range`` (the x-extent of the F inliers in aligned image 1) are rescued: matched in
     the band only.
+
+    One ``nogil`` kernel (:func:`guidedmatch.kernels.search_regions_kernel`; it runs for every guided batch of every
+    pair, and a collection's pair threads otherwise held the GIL for it); :func:`_search_regions_numpy` is the same
+    computation from :func:`~guidedmatch.spatial_order.admissible_x_ranges` and
+    :func:`~guidedmatch.epipolar.map_points` (the tests' reference).
     """
+    p = np.ascontiguousarray(np.asarray(pts1a, np.float64).reshape(-1, 2))
+    use_so = so is not None and bool(so.usable)
+    if use_so and len(so.gap_lo) != so.n_window + 1:
+        raise ValueError("this model was fitted with gap_table=False: it has no search-range table")
+    rescue = (use_so and outside_window == "band" and F_aligned is not None and inlier_x1_range is not None)
+    z = np.zeros(0)
+    zi = np.zeros(0, np.int64)
+    keep, lo, hi, lines, rescued = kernels.search_regions_kernel(
+        p, use_so,
+        np.ascontiguousarray(so.x1_sorted, np.float64) if use_so else z,
+        np.ascontiguousarray(so.gap_lo, np.int64) if use_so else zi,
+        np.ascontiguousarray(so.gap_hi, np.int64) if use_so else zi,
+        float(so.window1_x[0]) if use_so else 0.0, float(so.window1_x[1]) if use_so else 0.0,
+        np.ascontiguousarray(so.x2_sorted, np.float64) if use_so else z, int(so.n_window) if use_so else 0,
+        rescue, float(inlier_x1_range[0]) if rescue else 0.0, float(inlier_x1_range[1]) if rescue else 0.0,
+        F_aligned is not None, np.ascontiguousarray(F_aligned, np.float64) if F_aligned is not None else np.eye(3))
+    return Regions(keep, lo, hi, lines if F_aligned is not None else None, rescued)
+
+
+def _search_regions_numpy(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x1_range=None,
+                          outside_window: str = "drop") -> Regions:
+    """:func:`search_regions` in NumPy."""
     nq = len(pts1a)
     keep, lo, hi = np.ones(nq, bool), np.full(nq, -np.inf), np.full(nq, np.inf)
     rescued = np.zeros(nq, bool)
