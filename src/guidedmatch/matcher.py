@@ -303,19 +303,18 @@ def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x
     use_so = so is not None and bool(so.usable)
     if use_so and len(so.gap_lo) != so.n_window + 1:
         raise ValueError("this model was fitted with gap_table=False: it has no search-range table")
-    rescue = (use_so and outside_window == "band" and F_aligned is not None and inlier_x1_range is not None)
-    z = np.zeros(0)
-    zi = np.zeros(0, np.int64)
-    keep, lo, hi, lines, rescued = kernels.search_regions_kernel(
-        p, use_so,
-        np.ascontiguousarray(so.x1_sorted, np.float64) if use_so else z,
-        np.ascontiguousarray(so.gap_lo, np.int64) if use_so else zi,
-        np.ascontiguousarray(so.gap_hi, np.int64) if use_so else zi,
-        float(so.window1_x[0]) if use_so else 0.0, float(so.window1_x[1]) if use_so else 0.0,
-        np.ascontiguousarray(so.x2_sorted, np.float64) if use_so else z, int(so.n_window) if use_so else 0,
-        rescue, float(inlier_x1_range[0]) if rescue else 0.0, float(inlier_x1_range[1]) if rescue else 0.0,
-        F_aligned is not None, np.ascontiguousarray(F_aligned, np.float64) if F_aligned is not None else np.eye(3))
-    return Regions(keep, lo, hi, lines if F_aligned is not None else None, rescued)
+    if use_so:  # x1_sorted, gap_lo, gap_hi, window1_x bounds, x2_sorted, n_window
+        so_args = (np.ascontiguousarray(so.x1_sorted, np.float64), np.ascontiguousarray(so.gap_lo, np.int64),
+                   np.ascontiguousarray(so.gap_hi, np.int64), float(so.window1_x[0]), float(so.window1_x[1]),
+                   np.ascontiguousarray(so.x2_sorted, np.float64), int(so.n_window))
+    else:
+        so_args = (np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0.0, 0.0, np.zeros(0), 0)
+    rescue = use_so and outside_window == "band" and F_aligned is not None and inlier_x1_range is not None
+    r_lo, r_hi = (float(inlier_x1_range[0]), float(inlier_x1_range[1])) if rescue else (0.0, 0.0)
+    use_F = F_aligned is not None
+    F = np.ascontiguousarray(F_aligned, np.float64) if use_F else np.eye(3)
+    keep, lo, hi, lines, rescued = kernels.search_regions_kernel(p, use_so, *so_args, rescue, r_lo, r_hi, use_F, F)
+    return Regions(keep, lo, hi, lines if use_F else None, rescued)
 
 
 def _search_regions_numpy(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x1_range=None,

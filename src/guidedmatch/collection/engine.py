@@ -695,10 +695,10 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
     # searches cannot race on it)
     with _faiss_threads(1), _opencv_threads(1), \
             cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
-        # the first pair loads Numba's kernels (~0.25 s holding the GIL); meanwhile one pool thread builds the indexes
-        # the first pairs will search (faiss releases the GIL), until a pair has finished (module doc, "Start-up")
+        # one pool thread builds the indexes the first pairs will search (faiss releases the GIL) until a pair has
+        # finished, the other sets Numba up (~0.3 s holding the GIL) before any pair needs it (module doc, "Start-up")
         prefetch = pool.submit(_prefetch_indexes, cache, _index_order(queue), first_done)
-        pool.submit(_load_numba)  # Numba's set-up now, not after the first pair's own loads and index search
+        pool.submit(_load_numba)
 
         def fill() -> None:
             while len(inflight) < 2 * threads:

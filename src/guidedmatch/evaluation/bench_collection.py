@@ -351,11 +351,9 @@ def markdown(result: dict) -> str:
         for name, r in rep.items():
             q = result["sets"][name]["ratios"]
             w1, w2 = r.get("workers_1"), r.get("workers_2")
+            scaling = f"{q['workers_2_over_1_median']:.2f}" if w1 else "-"
             lines.append(f"| {name} | {len(r['ours']['walls'])} | {mm(r['colmap'])} | {mm(r['ours'])} | "
-                         f"{q['time_ours_over_colmap_median']:.2f} | {mm(w1)} | {mm(w2)} | "
-                         f"{q['workers_2_over_1_median']:.2f} |" if w1 else
-                         f"| {name} | {len(r['ours']['walls'])} | {mm(r['colmap'])} | {mm(r['ours'])} | "
-                         f"{q['time_ours_over_colmap_median']:.2f} | - | - | - |")
+                         f"{q['time_ours_over_colmap_median']:.2f} | {mm(w1)} | {mm(w2)} | {scaling} |")
         lines.append("")
     return "\n".join(lines)
 

@@ -480,8 +480,8 @@ def _window_fit_gaussian(sigma, i1_lo, i1_hi, i2_lo, i2_hi, nodes, weights, var_
     g_under_g = max(n_good - 1.0, 0.0)
     g_under_b = min(n_good, n_others)
     no = max(n_others, 1.0)
-    nb = min(max(max(n_others - g_under_g, 0.0), 0.0), no)  # good_inversion_moments' nb, clipped by _beta_moments
-    nbc = max(n_others - g_under_g, 0.0)                   # the unclipped nb of _cell_moments
+    nbc = max(n_others - g_under_g, 0.0)  # good_inversion_moments' nb, as _cell_moments uses it
+    nb = min(nbc, no)                     # ... and as _beta_moments clips it
     gb = min(max(g_under_b, 0.0), no)
     bb = no - gb
     log_pb0 = math.log(1.0 - p_good)
