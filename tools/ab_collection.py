@@ -43,7 +43,7 @@ def source_tree(rev: str, tmp: Path) -> Path:
     return src
 
 
-def one_run(src: Path, db: Path, work: Path, extra: list[str]) -> dict:
+def one_run(src: Path, db: Path, work: Path, extra: list[str], more_env: dict | None = None) -> dict:
     copy = work / "ab.db"
     for p in work.glob("ab.db*"):
         p.unlink()
@@ -51,7 +51,7 @@ def one_run(src: Path, db: Path, work: Path, extra: list[str]) -> dict:
     log = work / "ab.jsonl"
     if log.exists():
         log.unlink()
-    env = {**os.environ, "PYTHONPATH": str(src)}
+    env = {**os.environ, **(more_env or {}), "PYTHONPATH": str(src)}
     t0, unix0 = time.perf_counter(), time.time()
     r = subprocess.run([sys.executable, "-m", "guidedmatch.cli", "colmap", str(copy), "--pairs", "exhaustive",
                         "--no-progress", "--log", str(log), *extra], env=env, capture_output=True, text=True)
@@ -71,23 +71,28 @@ def main(argv=None) -> int:
     p.add_argument("--runs", type=int, default=10, help="runs of each version (default 10)")
     p.add_argument("--a-options", default="", help="more options of guidedmatch colmap for A, e.g. '--workers 1'")
     p.add_argument("--b-options", default="", help="the same for B")
+    p.add_argument("--a-env", action="append", default=[], metavar="KEY=VALUE",
+                   help="an environment variable of A's processes (repeatable), e.g. NUMBA_NUM_THREADS=1")
+    p.add_argument("--b-env", action="append", default=[], metavar="KEY=VALUE", help="the same for B")
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="gm-ab-") as tmp:
         tmp = Path(tmp)
         trees = {"A": source_tree(a.a, tmp / "A"), "B": source_tree(a.b, tmp / "B")}
         opts = {"A": a.a_options.split(), "B": a.b_options.split()}
+        envs = {"A": dict(e.split("=", 1) for e in a.a_env), "B": dict(e.split("=", 1) for e in a.b_env)}
         work = tmp / "work"
         work.mkdir()
         for tag, src in trees.items():  # Numba compiles each tree's kernels once: not counted
-            one_run(src, a.database, work, opts[tag])
+            one_run(src, a.database, work, opts[tag], envs[tag])
         walls: dict[str, list[float]] = {"A": [], "B": []}
         for i in range(a.runs):
             for tag, src in trees.items():
-                r = one_run(src, a.database, work, opts[tag])
+                r = one_run(src, a.database, work, opts[tag], envs[tag])
                 walls[tag].append(r["wall"])
                 print(f"run {i + 1} {tag}: wall {r['wall']:.3f} s, first pair at {r['first']:.2f} s, "
                       f"inliers {r['inliers']}", flush=True)
-    for tag, rev, o in (("A", a.a, a.a_options), ("B", a.b, a.b_options)):
+    for tag, rev, o in (("A", a.a, " ".join([a.a_options, *a.a_env]).strip()),
+                        ("B", a.b, " ".join([a.b_options, *a.b_env]).strip())):
         w = walls[tag]
         print(f"{tag} ({rev}{' ' + o if o else ''}): median {statistics.median(w):.3f} s, min {min(w):.3f}, max {max(w):.3f}, n {len(w)}")
     return 0

@@ -7,9 +7,58 @@
 from __future__ import annotations
 
 import atexit
+import contextlib
 import gc
+import sys
+import threading
 
 _REGISTERED: list = []
+_OWN_PROCESS: list = []
+
+
+def mark_own_process() -> None:
+    """Declare this process guidedmatch's own (the command line, a worker process of a local cluster we started):
+    :func:`without_numba_blas_probe` then applies. A library call never marks its caller's process."""
+    if not _OWN_PROCESS:
+        _OWN_PROCESS.append(True)
+
+
+class _HideScipy:
+    """A ``sys.meta_path`` finder that makes ``scipy`` / ``scipy.*`` (not yet imported) unimportable, for one
+    thread only: another thread importing SciPy meanwhile is not affected."""
+
+    def __init__(self, thread_id: int) -> None:
+        self.thread_id = thread_id
+
+    def find_spec(self, fullname, path=None, target=None):
+        if threading.get_ident() == self.thread_id and (fullname == "scipy" or fullname.startswith("scipy.")):
+            raise ModuleNotFoundError(f"{fullname} hidden while Numba's CPU target is set up", name=fullname)
+        return None
+
+
+@contextlib.contextmanager
+def without_numba_blas_probe():
+    """Set Numba's CPU target up inside this block without its BLAS probe. Yields whether the probe is skipped.
+
+    The first compiled-kernel call of a process imports ``numba.np.arraymath``, whose import calls
+    ``_check_blas()``: ``import scipy.linalg.cython_blas``, i.e. all of ``scipy.linalg`` (0.12-0.14 s holding the
+    GIL, measured; 0.15 s with what SciPy's array-API layer imports from NumPy). The probe's only use is
+    ``_HAVE_BLAS``, which picks BLAS over a plain loop for the inner products of ``np.correlate`` /
+    ``np.convolve`` in *jitted* code; none of our kernels calls those (nor any BLAS routine: a kernel that did
+    would import SciPy at its own compilation, after this block). So in a process of ours
+    (:func:`mark_own_process`) the block hides SciPy from this thread while the target loads, and Numba records
+    "no BLAS" -- the start-up of ``guidedmatch colmap`` is that much shorter. Anywhere else (a library call in the
+    user's process, whose own jitted code may want BLAS for those two functions), or when the target or
+    ``scipy.linalg`` is already loaded, it does nothing."""
+    if not _OWN_PROCESS or "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        yield False
+        return
+    finder = _HideScipy(threading.get_ident())
+    sys.meta_path.insert(0, finder)
+    try:
+        yield True
+    finally:
+        sys.meta_path.remove(finder)
 
 
 def freeze_gc_at_exit() -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from ._runtime import freeze_gc_at_exit
+from ._runtime import freeze_gc_at_exit, mark_own_process
 from .config import MODES, MatcherConfig
 from .errors import ConfigError, GuidedMatchError, InputError, OutputError
 from .features import writable_folder
@@ -693,6 +693,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     freeze_gc_at_exit()  # a cheap interpreter shutdown (guidedmatch._runtime)
+    mark_own_process()   # Numba's set-up may skip its SciPy BLAS probe (guidedmatch._runtime)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
