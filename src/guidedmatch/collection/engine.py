@@ -44,12 +44,11 @@ Results stream back to ONE writer -- the caller's sink in this process -- in com
 
 Start-up (in-process, threads >= 2)
 -----------------------------------
-Numba is imported (~0.12 s) and its CPU target set up (~0.15 s) once per process, both holding the GIL; the
-target's set-up would also import ``scipy.linalg`` (0.13 s) for a BLAS probe none of our kernels needs, which a
-process of ours skips (``guidedmatch._runtime.without_numba_blas_probe``). One pool thread does all that first
-(:func:`_load_numba`); meanwhile the other loads the images the queued pairs search, in the order they are reached,
-and builds their approximate indexes (faiss releases the GIL; preparing an image imports no Numba), until the first
-pair has finished; the report's ``prefetched_images`` / ``prefetched_indexes`` count
+Numba's CPU target is set up once per process (~0.13 s holding the GIL); the set-up would also import
+``scipy.linalg`` (another 0.12-0.14 s) for a BLAS probe none of our kernels needs, which a process of ours skips
+(``guidedmatch._runtime.without_numba_blas_probe``). One pool thread does that first (:func:`_load_numba`);
+meanwhile the other loads the images the queued pairs search, in the order they are reached, and builds their
+approximate indexes (faiss releases the GIL), until the first pair has finished; the report's ``prefetched_images`` / ``prefetched_indexes`` count
 them. Every index built this way is one a queued pair needs, so it is work moved earlier, not added. Herz-Jesus-P8,
 8192 SIFT, 28 pairs, 10 alternating fresh runs each of ``guidedmatch colmap DB --pairs exhaustive``
 (``tools/ab_collection.py``): the prefetch 1.99 -> 1.86 s, the Numba set-up first 1.61 -> 1.54 s (medians;
@@ -741,9 +740,9 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
 
 
 def _load_numba() -> None:
-    """Import Numba and set its CPU target up (~0.27 s holding the GIL, once per process; without SciPy in a process
-    of ours) by loading its smallest cached kernel: the first pair then starts with it done, while the other pool
-    thread builds indexes."""
+    """Set Numba's CPU target up (~0.13 s holding the GIL, once per process; 0.12-0.14 s more where SciPy's BLAS
+    probe is not skipped) by loading its smallest cached kernel: the first pair then starts with it done, while the
+    other pool thread builds indexes."""
     from .. import kernels
 
     with without_numba_blas_probe():

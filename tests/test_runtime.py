@@ -1,0 +1,52 @@
+"""guidedmatch._runtime: the process-level start-up shortcuts, each checked in a fresh interpreter (they act once per
+process, so the test process itself cannot show them)."""
+import json
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+_PROBE = textwrap.dedent("""
+    import json, sys, threading
+    import numpy as np
+    from guidedmatch import _runtime, kernels
+    if sys.argv[1] == "own":
+        _runtime.mark_own_process()
+    other = {}
+    with _runtime.without_numba_blas_probe() as skipped:
+        if sys.argv[2] == "thread":  # another thread may import SciPy meanwhile: hidden from the set-up thread only
+            t = threading.Thread(target=lambda: other.update(ok=__import__("scipy.linalg") is not None))
+            t.start(); t.join()
+        order, offsets = kernels.counting_order(np.array([2, 0, 1, 0], np.int64), 3)
+    import numba.np.arraymath as am
+    hidden_after = any(isinstance(f, _runtime._HideScipy) for f in sys.meta_path)
+    import scipy.linalg  # importable again after the block
+    print(json.dumps(dict(skipped=skipped, have_blas=bool(am._HAVE_BLAS), order=order.tolist(),
+                          offsets=offsets.tolist(), other=other.get("ok"), hidden_after=hidden_after)))
+""")
+
+
+def _probe(own: str, thread: str = "-") -> dict:
+    r = subprocess.run([sys.executable, "-c", _PROBE, own, thread], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("thread", ["-", "thread"])
+def test_own_process_skips_the_blas_probe_and_kernels_still_work(thread):
+    out = _probe("own", thread)
+    assert out["skipped"] is True
+    assert out["order"] == [1, 3, 2, 0] and out["offsets"] == [0, 2, 3, 4]   # stable counting sort by key
+    assert out["hidden_after"] is False
+    if thread == "thread":
+        # the other thread's import succeeded; SciPy is then loaded, so Numba's probe finds it (and costs nothing)
+        assert out["other"] is True and out["have_blas"] is True
+    else:
+        assert out["have_blas"] is False
+
+
+def test_a_library_process_keeps_numbas_blas_probe():
+    out = _probe("library")
+    assert out["skipped"] is False and out["have_blas"] is True
+    assert out["order"] == [1, 3, 2, 0]
