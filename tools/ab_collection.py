@@ -8,6 +8,7 @@ and byte-compiled; ``.`` is the working tree. Every run gets a fresh copy of the
     python tools/ab_collection.py /tmp/lead_coll/default.db --a HEAD --b . --runs 10
     python tools/ab_collection.py DB --a HEAD~1 --b HEAD --runs 10
     python tools/ab_collection.py DB --a . --b . --a-options="--workers 1" --b-options="--workers 2" --runs 3
+    python tools/ab_collection.py DB --a . --b . --b-env NUMPY_MADVISE_HUGEPAGE=0 --runs 10
 
 Prints one line per run and the median / min / max of each version. Run it on an idle machine. The first run of
 each version compiles Numba's kernels into that tree's cache and is not counted.

@@ -62,7 +62,8 @@ def section(results: dict) -> str:
              "the share within 3 px, relative to COLMAP's.", "",
              markdown_table(results["rows"]).rstrip(), "",
              *(["End to end from an empty folder (8192 features; `guidedmatch sfm` with its defaults vs the same "
-                "pycolmap pipeline with COLMAP's matcher):", "", e2e_table(results["end_to_end"]), ""]
+                "pycolmap pipeline with COLMAP's matcher, each a fresh process timed from start to exit, imports "
+                "included):", "", e2e_table(results["end_to_end"]), ""]
                if results.get("end_to_end") else []),
              _runs_note(results),
              f"Last run: `{results.get('command', 'guidedmatch bench sfm')}` (commit "
