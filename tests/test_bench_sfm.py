@@ -204,4 +204,6 @@ def test_end_to_end_runs_both_pipelines_as_fresh_processes(tmp_path):
         assert 0 < stages < r["total_s"], r                  # the process's wall time holds its stages
         assert r["verified_inliers"] > 100 and r["registered"] >= 2
         assert r["median_pose_error_deg"] is not None
-    assert (work / "e2e_guidedmatch" / "report.json").is_file() and (work / "e2e_colmap" / "database.db").is_file()
+    assert (work / "e2e_colmap" / "database.db").is_file()
+    report = json.loads((work / "e2e_guidedmatch" / "report.json").read_text())
+    assert isinstance(report["matching_warm_up"], float)  # COLMAP SIFT, in-process matching: set up during extraction
