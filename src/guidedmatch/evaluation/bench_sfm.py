@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..sfm import IMAGE_EXTENSIONS
 from .poses import evaluate_poses, poses_from_reconstruction, read_strecha_cameras
 
 #: Feature settings: name -> (max_num_features, peak_threshold or None for COLMAP's default).
@@ -200,7 +201,8 @@ def run_method(method: str, base_db: Path, image_dir: Path, gt: dict, work: Path
 
 #: the COLMAP user's pipeline as a script of its own (pycolmap only, nothing of ours imported): the same extraction
 #: and mapping options as ``guidedmatch sfm``'s defaults (``sfm.extract_colmap_sift`` / ``sfm.run_mapping``), COLMAP's
-#: exhaustive matcher in between; prints the stage times and the model's numbers as one JSON line
+#: exhaustive matcher in between, on the images ``guidedmatch sfm`` takes (:data:`guidedmatch.sfm.IMAGE_EXTENSIONS`);
+#: prints the stage times and the model's numbers as one JSON line
 E2E_COLMAP_SCRIPT = """
 import json, os, sys, time
 import pycolmap
@@ -208,7 +210,7 @@ t0 = time.perf_counter()
 image_dir, out, threads, seed = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 pycolmap.logging.minloglevel = 1
 db = os.path.join(out, "database.db")
-names = sorted(n for n in os.listdir(image_dir) if n.lower().endswith((".jpg", ".jpeg", ".png", ".tif", ".tiff")))
+names = sorted(n for n in os.listdir(image_dir) if n.lower().endswith(%(extensions)r))
 ext = pycolmap.FeatureExtractionOptions()
 ext.num_threads = threads
 ext.use_gpu = False
@@ -236,7 +238,7 @@ if best is not None:
     best.write(os.path.join(out, "best"))
 print(json.dumps(dict(extraction_s=t1 - t0, matching_s=t2 - t1, mapping_s=t3 - t2,
                       registered=best.num_reg_images() if best else 0, points3D=best.num_points3D() if best else 0)))
-"""
+""" % {"extensions": IMAGE_EXTENSIONS}
 
 
 def _fresh_process(cmd: list[str]) -> tuple[float, str]:
