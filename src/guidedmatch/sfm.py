@@ -406,7 +406,7 @@ def _set_known_camera(db_path: Path, cam: tuple[str, list[float]]) -> None:
 
 
 class _WarmUp(threading.Thread):
-    """The matching stage's imports and Numba's set-up, run in a thread while pycolmap extracts (module doc of
+    """The matching stage's imports and Numba's set-up, run in a thread while pycolmap extracts (see
     :func:`_warm_up_matching`); :meth:`join_and_time` waits for it and returns its seconds, or the error text when it
     failed (the matching stage then does the same work itself and raises whatever is wrong)."""
 
@@ -437,8 +437,8 @@ class _WarmUp(threading.Thread):
 
 def _warm_up_matching(conf: "SfmConfig") -> _WarmUp | None:
     """Start the matching stage's set-up in a thread while pycolmap extracts features: the imports of the collection
-    engine, faiss and OpenCV, Numba's CPU target and the SIFT kernels (~0.6 s holding the GIL in a fresh process,
-    seconds of compilation on a first-ever run). ``pycolmap.extract_features`` releases the GIL, so this runs beside
+    engine, faiss and OpenCV, Numba's CPU target and the SIFT kernels (0.8 s in a fresh process on Herz-Jesus-P8,
+    mostly holding the GIL; seconds of compilation on a first-ever run). ``pycolmap.extract_features`` releases the GIL, so this runs beside
     it; it takes CPU from the extraction, which keeps both cores busy, but only as much as the matching stage would
     otherwise spend on it afterwards, on the critical path. Only for COLMAP SIFT extraction with in-process matching
     possible (no ``--scheduler``, ``workers`` 0 or automatic): our own detectors extract in Python (the GIL), and a
@@ -657,6 +657,11 @@ def report_markdown(report: dict) -> str:
                  + " |")
     mp = st["mapping"]
     best = mp["models"][mp["best"]] if mp.get("best") is not None else None
+    warm = report.get("matching_warm_up")
+    if warm is not None:
+        lines.append(f"| matching set-up, during extraction | {_fmt_s(warm) if isinstance(warm, float) else '-'} | "
+                     + ("imports, Numba's set-up, kernel loads (not on the critical path) |" if isinstance(warm, float)
+                        else f"failed ({warm}); redone by the matching stage |"))
     lines.append(f"| mapping | {_fmt_s(mp['time_s'])} | {len(mp['models'])} model(s) |")
     lines.append(f"| total | {_fmt_s(report['total_time_s'])} | |")
     lines += ["", "## Reconstruction (sparse/0)", ""]
@@ -708,10 +713,8 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
         _say(conf, f"skipping {len(skipped)} unreadable image(s): " + ", ".join(s["name"] for s in skipped))
 
     warm = _warm_up_matching(conf)
-    try:
-        extraction = extract_main(conf, paths, names)
-    finally:
-        warm_s = warm.join_and_time() if warm is not None else None
+    extraction = extract_main(conf, paths, names)   # on an error, the daemon warm-up thread is not waited for
+    warm_s = warm.join_and_time() if warm is not None else None
     for n in extraction["failed"]:
         skipped.append({"name": n, "reason": "the feature extractor could not read it or found no features"})
     names = [n for n in names if n not in set(extraction["failed"])]

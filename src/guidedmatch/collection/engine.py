@@ -48,11 +48,11 @@ Numba's CPU target is set up once per process (~0.13 s holding the GIL); the set
 ``scipy.linalg`` (another 0.12-0.14 s) for a BLAS probe none of our kernels needs, which a process of ours skips
 (``guidedmatch._runtime.without_numba_blas_probe``). One pool thread does that first (:func:`_load_numba`);
 meanwhile the other loads the images the queued pairs search, in the order they are reached, and builds their
-approximate indexes (faiss releases the GIL), until the first pair has finished; the report's ``prefetched_images`` / ``prefetched_indexes`` count
-them. Every index built this way is one a queued pair needs, so it is work moved earlier, not added. Herz-Jesus-P8,
-8192 SIFT, 28 pairs, 10 alternating fresh runs each of ``guidedmatch colmap DB --pairs exhaustive``
-(``tools/ab_collection.py``): the prefetch 1.99 -> 1.86 s, the Numba set-up first 1.61 -> 1.54 s (medians;
-docs/collections.md).
+approximate indexes (faiss releases the GIL), until the first pair has finished; the report's
+``prefetched_images`` / ``prefetched_indexes`` count them. Every index built this way is one a queued pair needs,
+so it is work moved earlier, not added. Herz-Jesus-P8, 8192 SIFT, 28 pairs, 10 alternating fresh runs each of
+``guidedmatch colmap DB --pairs exhaustive`` (``tools/ab_collection.py``): the prefetch 1.99 -> 1.86 s, the Numba
+set-up first 1.61 -> 1.54 s, the set-up without SciPy's probe 1.61 -> 1.49 s (medians; docs/collections.md).
 
 Memory bound
 ------------
