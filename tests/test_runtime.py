@@ -50,3 +50,30 @@ def test_a_library_process_keeps_numbas_blas_probe():
     out = _probe("library")
     assert out["skipped"] is False and out["have_blas"] is True
     assert out["order"] == [1, 3, 2, 0]
+
+
+def test_numba_set_up_falls_back_when_hiding_scipy_breaks_it():
+    """A Numba whose target set-up imported SciPy outside the BLAS probe would fail inside the block: the engine
+    then sets Numba up again with SciPy visible (simulated: a block that raises ImportError first)."""
+    code = textwrap.dedent("""
+        import contextlib, json
+        import numpy as np
+        from guidedmatch import _runtime
+        from guidedmatch.collection import engine
+        _runtime.mark_own_process()
+
+        @contextlib.contextmanager
+        def broken():
+            import numba.np.arraymath  # noqa: F401 - Numba's set-up starts ...
+            raise ImportError("scipy.special hidden")  # ... and then needs SciPy
+            yield
+
+        engine.without_numba_blas_probe = broken
+        engine._load_numba()
+        from guidedmatch import kernels
+        order, offsets = kernels.counting_order(np.array([1, 0], np.int64), 2)
+        print(json.dumps(order.tolist()))
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == [1, 0]

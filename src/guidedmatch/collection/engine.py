@@ -745,7 +745,12 @@ def _load_numba() -> None:
     other pool thread builds indexes."""
     from .. import kernels
 
-    with without_numba_blas_probe():
+    try:
+        with without_numba_blas_probe():
+            kernels.counting_order(np.zeros(1, np.int64), 1)
+    except ImportError:
+        # a Numba whose set-up needs SciPy beyond the BLAS probe: set up again with SciPy visible (the registries
+        # loaded before the failure are kept, the others load now); only the start-up saving is lost
         kernels.counting_order(np.zeros(1, np.int64), 1)
 
 
