@@ -16,7 +16,9 @@ Session 20 (2026-12-01), Herz-Jesus-P8: 11.4k: builds 0.31 s -> 0.03 s training 
 (all queries, not only ratio-test matches) -0.05 to +0.02 (per-image 0.75-0.87); comparisons +1-2 %. 68k: 2.36 s ->
 0.16 + 1.11 s; recall -0.01; comparisons +1.5-4 %. Not adopted: the recall loss at 11.4k needs checking against
 verified inliers and verdicts, the matcher's ski-rental uses the build cost (``PreparedImage.build_comparisons``),
-and every backend must train on the same images (determinism across 1 / 2 workers and in-process).
+every backend must train on the same images (determinism across 1 / 2 workers and in-process), and a pair matched
+in a collection would no longer give the same matches as ``guidedmatch.match`` on the pair alone (the hloc round trip
+test checks exactly that; the per-image index is what makes the two equal today).
 """
 from __future__ import annotations
 
