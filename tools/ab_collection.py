@@ -17,14 +17,12 @@ from __future__ import annotations
 
 import argparse
 import compileall
-import json
 import os
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,6 +43,10 @@ def source_tree(rev: str, tmp: Path) -> Path:
 
 
 def one_run(src: Path, db: Path, work: Path, extra: list[str], more_env: dict | None = None) -> dict:
+    """One fresh ``guidedmatch colmap`` process of the tree ``src`` on a fresh copy of ``db``, timed as the collection
+    benchmark times its runs (``bench_collection._timed``)."""
+    from guidedmatch.evaluation.bench_collection import _timed
+
     copy = work / "ab.db"
     for p in work.glob("ab.db*"):
         p.unlink()
@@ -53,15 +55,9 @@ def one_run(src: Path, db: Path, work: Path, extra: list[str], more_env: dict | 
     if log.exists():
         log.unlink()
     env = {**os.environ, **(more_env or {}), "PYTHONPATH": str(src)}
-    t0, unix0 = time.perf_counter(), time.time()
-    r = subprocess.run([sys.executable, "-m", "guidedmatch.cli", "colmap", str(copy), "--pairs", "exhaustive",
-                        "--no-progress", "--log", str(log), *extra], env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if r.returncode != 0:
-        raise RuntimeError(f"guidedmatch colmap failed ({r.returncode}): {r.stderr.strip()[-500:]}")
-    recs = [json.loads(x) for x in log.read_text().splitlines()]
-    pairs = [x for x in recs if x.get("event") == "pair"]
-    return dict(wall=wall, first=min(x["t_start"] for x in pairs) - unix0, inliers=recs[-1]["inliers"])
+    r = _timed([sys.executable, "-m", "guidedmatch.cli", "colmap", str(copy), "--pairs", "exhaustive", "--no-progress",
+                "--log", str(log), *extra], log, env=env)
+    return dict(wall=r["wall_s"], first=min(s[1] for s in r["spans"]), inliers=r["summary"]["inliers"])
 
 
 def main(argv=None) -> int:

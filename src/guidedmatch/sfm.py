@@ -50,6 +50,8 @@ __all__ = ["SfmConfig", "SfmPaths", "IMAGE_EXTENSIONS", "list_images", "check_im
 
 #: File suffixes taken as images (case-insensitive), as COLMAP's image reader accepts them.
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp")
+#: ``colmap feature_extractor``'s longest image side, used when ``max_image_size`` is not given.
+COLMAP_MAX_IMAGE_SIZE = 3200
 #: Our detectors, as ``detector="ours:<name>"``.
 OUR_DETECTORS = ("sift", "orb", "akaze", "brisk")
 #: Camera models accepted by ``camera=`` and their parameter counts (COLMAP's names and parameter order).
@@ -319,7 +321,7 @@ def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLik
     ext = pycolmap.FeatureExtractionOptions()
     ext.num_threads = num_threads
     ext.use_gpu = False
-    ext.max_image_size = int(max_image_size) if max_image_size else 3200   # colmap feature_extractor's default
+    ext.max_image_size = int(max_image_size) if max_image_size else COLMAP_MAX_IMAGE_SIZE
     if max_features:
         ext.sift.max_num_features = int(max_features)
     if peak_threshold is not None:
@@ -438,9 +440,9 @@ class _WarmUp(threading.Thread):
 def _warm_up_matching(conf: "SfmConfig") -> _WarmUp | None:
     """Start the matching stage's set-up in a thread while pycolmap extracts features: the imports of the collection
     engine, faiss and OpenCV, Numba's CPU target and the SIFT kernels (0.8 s in a fresh process on Herz-Jesus-P8,
-    mostly holding the GIL; seconds of compilation on a first-ever run). ``pycolmap.extract_features`` releases the GIL, so this runs beside
-    it; it takes CPU from the extraction, which keeps both cores busy, but only as much as the matching stage would
-    otherwise spend on it afterwards, on the critical path. Only for COLMAP SIFT extraction with in-process matching
+    mostly holding the GIL; seconds of compilation on a first-ever run). ``pycolmap.extract_features`` releases the
+    GIL, so this runs beside it; it takes CPU from the extraction, which keeps both cores busy, but only as much as
+    the matching stage would otherwise spend on it afterwards, on the critical path. Only for COLMAP SIFT extraction with in-process matching
     possible (no ``--scheduler``, ``workers`` 0 or automatic): our own detectors extract in Python (the GIL), and a
     cluster's client never loads Numba. The report records the warm-up's seconds (``matching_warm_up``)."""
     if conf.detector != "colmap" or conf.scheduler or (conf.workers or 0) > 0:

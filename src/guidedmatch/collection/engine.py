@@ -699,7 +699,7 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
     with _faiss_threads(1), _opencv_threads(1), \
             cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
         # one pool thread builds the indexes the first pairs will search (faiss releases the GIL) until a pair has
-        # finished, the other sets Numba up (~0.3 s holding the GIL) before any pair needs it (module doc, "Start-up")
+        # finished, the other sets Numba up (~0.13 s holding the GIL) before any pair needs it (module doc, "Start-up")
         prefetch = pool.submit(_prefetch_indexes, cache, _index_order(queue), first_done)
         pool.submit(_load_numba)
 

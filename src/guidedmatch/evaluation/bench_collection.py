@@ -65,12 +65,13 @@ def _env() -> dict:
     return env
 
 
-def _timed(cmd: list[str], log: Path | None = None) -> dict:
-    """Run ``cmd`` as a fresh process; wall time, return code, last lines of output; with a per-pair ``log``: its
-    summary and the pairs' spans ``[worker, start, end]`` in seconds since the process was started (timeline)."""
+def _timed(cmd: list[str], log: Path | None = None, env: dict | None = None) -> dict:
+    """Run ``cmd`` as a fresh process (environment ``env``, default :func:`_env`: this source tree first on the
+    path); wall time, return code, last lines of output; with a per-pair ``log``: its summary and the pairs' spans
+    ``[worker, start, end]`` in seconds since the process was started (timeline). Raises when the process fails."""
     unix0 = time.time()
     t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True, env=_env())
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env if env is not None else _env())
     wall = time.perf_counter() - t0
     out = dict(cmd=" ".join(cmd[2:]) if cmd[1] == "-c" else " ".join(cmd), wall_s=wall, returncode=r.returncode,
                stdout_tail=r.stdout.strip().splitlines()[-8:], stderr_tail=r.stderr.strip().splitlines()[-3:])

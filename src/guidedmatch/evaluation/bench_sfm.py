@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..sfm import IMAGE_EXTENSIONS
+from ..sfm import COLMAP_MAX_IMAGE_SIZE, IMAGE_EXTENSIONS, SfmConfig
 from .poses import evaluate_poses, poses_from_reconstruction, read_strecha_cameras
 
 #: Feature settings: name -> (max_num_features, peak_threshold or None for COLMAP's default).
@@ -214,9 +214,9 @@ names = sorted(n for n in os.listdir(image_dir) if n.lower().endswith(%(extensio
 ext = pycolmap.FeatureExtractionOptions()
 ext.num_threads = threads
 ext.use_gpu = False
-ext.max_image_size = 3200
+ext.max_image_size = %(max_image_size)d
 reader = pycolmap.ImageReaderOptions()
-reader.camera_model = "SIMPLE_RADIAL"
+reader.camera_model = %(camera_model)r
 pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.AUTO,
                           reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
 t1 = time.perf_counter()
@@ -238,21 +238,7 @@ if best is not None:
     best.write(os.path.join(out, "best"))
 print(json.dumps(dict(extraction_s=t1 - t0, matching_s=t2 - t1, mapping_s=t3 - t2,
                       registered=best.num_reg_images() if best else 0, points3D=best.num_points3D() if best else 0)))
-""" % {"extensions": IMAGE_EXTENSIONS}
-
-
-def _fresh_process(cmd: list[str]) -> tuple[float, str]:
-    """Run ``cmd`` as a fresh process (our source tree first on the path); its wall time and stdout."""
-    import subprocess
-
-    from .bench_collection import _env
-
-    t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True, env=_env())
-    wall = time.perf_counter() - t0
-    if r.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd[:4])} ... failed ({r.returncode}): {r.stderr.strip()[-1500:]}")
-    return wall, r.stdout
+""" % {"extensions": IMAGE_EXTENSIONS, "max_image_size": COLMAP_MAX_IMAGE_SIZE, "camera_model": SfmConfig.camera_model}
 
 
 def _e2e_ours(image_dir: Path, gt: dict, work: Path, threads: int, seed: int) -> dict:
@@ -261,8 +247,10 @@ def _e2e_ours(image_dir: Path, gt: dict, work: Path, threads: int, seed: int) ->
     d = work / "e2e_guidedmatch"
     if d.exists():
         shutil.rmtree(d)
-    total, _ = _fresh_process([sys.executable, "-m", "guidedmatch.cli", "sfm", str(image_dir), str(d), "--threads",
-                               str(threads), "--seed", str(seed), "--quiet"])
+    from .bench_collection import _timed
+
+    total = _timed([sys.executable, "-m", "guidedmatch.cli", "sfm", str(image_dir), str(d), "--threads", str(threads),
+                    "--seed", str(seed), "--quiet"])["wall_s"]
     with open(d / "report.json") as fh:
         rep = json.load(fh)
     st = rep["stages"]
@@ -278,14 +266,14 @@ def _e2e_colmap(image_dir: Path, gt: dict, work: Path, threads: int, seed: int) 
     """The same pipeline with COLMAP's matcher as a fresh pycolmap-only process (:data:`E2E_COLMAP_SCRIPT`), timed
     from start to exit."""
     from ..sfm import verified_inliers
+    from .bench_collection import _timed
 
     d = work / "e2e_colmap"
     if d.exists():
         shutil.rmtree(d)
     d.mkdir(parents=True)
-    total, out = _fresh_process([sys.executable, "-c", E2E_COLMAP_SCRIPT, str(image_dir), str(d), str(threads),
-                                 str(seed)])
-    rec = json.loads(out.strip().splitlines()[-1])
+    run = _timed([sys.executable, "-c", E2E_COLMAP_SCRIPT, str(image_dir), str(d), str(threads), str(seed)])
+    total, rec = run["wall_s"], json.loads(run["stdout_tail"][-1])
     ev = evaluate_poses(poses_from_reconstruction(str(d / "best")), gt) if rec["registered"] else None
     return {"pipeline": "pycolmap: extract + match_exhaustive + incremental_mapping", "total_s": total,
             "extraction_s": rec["extraction_s"], "matching_s": rec["matching_s"], "mapping_s": rec["mapping_s"],
@@ -462,7 +450,8 @@ def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None
     rows = []
     from .._runtime import byte_compile_package
 
-    results = {"meta": {**run_metadata(seed), "byte_compiled": byte_compile_package()}, "command": command, "scene": str(scene), "threads": threads,
+    results = {"meta": {**run_metadata(seed), "byte_compiled": byte_compile_package()}, "command": command,
+               "scene": str(scene), "threads": threads,
                "methods": methods, "settings": list(settings), "rows": rows, "end_to_end": None,
                "note": "wall-clock times on 2 cores (see meta.load_average); same features for all methods"}
     old_rows, old_e2e = [], None
