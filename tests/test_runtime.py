@@ -5,6 +5,7 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 
 _PROBE = textwrap.dedent("""
@@ -77,3 +78,66 @@ def test_numba_set_up_falls_back_when_hiding_scipy_breaks_it():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads(r.stdout.strip().splitlines()[-1]) == [1, 0]
+
+
+# --- pycolmap's exported zlib (_runtime.zlib_shadowed) ---------------------------------------------------------------
+#: the raw hazard, without guidedmatch: pycolmap first, then a zlib stream (what a PNG writer does)
+_ZLIB_RAW = "import pycolmap, zlib\nc = zlib.compressobj(6)\nc.compress(bytes(range(256)) * 4000)\nc.flush()\ndel c\n"
+
+
+def _python(code: str, cwd) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=cwd)
+
+
+def test_pycolmap_first_is_detected_exactly_when_zlib_would_abort(tmp_path):
+    """Whatever this machine's pycolmap and system zlib do, guidedmatch's verdict agrees with it: a process that
+    imported pycolmap first gets a warning at ``import guidedmatch`` and an OutputError from our writers exactly
+    when a zlib stream would abort that process (it does with pycolmap 4.2.1 on Debian's zlib)."""
+    pytest.importorskip("pycolmap")
+    aborts = _python(_ZLIB_RAW, tmp_path).returncode != 0
+    png, npz = tmp_path / "x.png", tmp_path / "x.npz"
+    code = textwrap.dedent(f"""
+        import pycolmap, json, warnings
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            import guidedmatch
+        from guidedmatch._runtime import zlib_shadowed
+        from guidedmatch.errors import OutputError
+        out = dict(warned=any("zlib" in str(w.message) for w in caught), shadowed=zlib_shadowed() is not None,
+                   errors=[])
+        if out["shadowed"]:  # our writers refuse instead of aborting (without the check they would abort here)
+            import numpy as np
+            from guidedmatch.features import atomic_savez
+            from guidedmatch.plots import _plt, save_figure
+            for write in (lambda: save_figure(_plt().figure(), {str(png)!r}),
+                          lambda: atomic_savez({str(npz)!r}, a=np.arange(3))):
+                try:
+                    write()
+                except OutputError as exc:
+                    out["errors"].append(str(exc))
+        print(json.dumps(out))
+    """)
+    r = _python(code, tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["shadowed"] is aborts and out["warned"] is aborts
+    if aborts:
+        assert len(out["errors"]) == 2 and all("before pycolmap" in e for e in out["errors"])
+        assert not png.exists() and not npz.exists()
+
+
+def test_importing_guidedmatch_first_keeps_zlib_usable_after_pycolmap(tmp_path):
+    pytest.importorskip("pycolmap")
+    code = "import guidedmatch\n" + _ZLIB_RAW + textwrap.dedent(f"""
+        import numpy as np
+        from guidedmatch._runtime import zlib_shadowed
+        from guidedmatch.features import atomic_savez
+        from guidedmatch.plots import _plt, save_figure
+        save_figure(_plt().figure(), {str(tmp_path / "x.png")!r})
+        atomic_savez({str(tmp_path / "x.npz")!r}, a=np.arange(3))
+        print(zlib_shadowed())
+    """)
+    r = _python(code, tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "None"
+    assert (tmp_path / "x.png").stat().st_size > 0 and np.load(tmp_path / "x.npz")["a"].tolist() == [0, 1, 2]

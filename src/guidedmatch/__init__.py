@@ -12,6 +12,8 @@ Names are loaded on first use (``import guidedmatch`` itself imports no NumPy, O
 from __future__ import annotations
 
 import importlib
+import sys
+import zlib as _zlib  # noqa: F401 - load the system zlib before pycolmap can: see _runtime.zlib_shadowed
 
 __version__ = "0.1.0"
 
@@ -42,6 +44,14 @@ _EXPORTS = {
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
+
+if "pycolmap" in sys.modules:  # imported before us: it may already have captured the system zlib
+    from ._runtime import zlib_shadowed as _zlib_shadowed
+
+    if _zlib_shadowed():
+        import warnings
+
+        warnings.warn(_zlib_shadowed(), RuntimeWarning, stacklevel=2)
 
 
 def __getattr__(name: str):

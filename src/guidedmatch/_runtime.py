@@ -1,4 +1,5 @@
-"""Process-level settings of the command line and of collection worker processes (never of a library call).
+"""Process-level settings of the command line and of collection worker processes (never of a library call), and
+one process-level check that library calls use too (:func:`zlib_shadowed`: pycolmap's exported zlib).
 
 >>> freeze_gc_at_exit(); freeze_gc_at_exit()   # registers once
 >>> len(_REGISTERED)
@@ -9,11 +10,13 @@ from __future__ import annotations
 import atexit
 import contextlib
 import gc
+import os
 import sys
 import threading
 
 _REGISTERED: list = []
 _OWN_PROCESS: list = []
+_ZLIB_VERDICT: list = []
 
 
 def mark_own_process() -> None:
@@ -90,3 +93,75 @@ def byte_compile_package() -> dict:
     t0 = time.perf_counter()
     ok = bool(compileall.compile_dir(str(root), quiet=1))
     return {"package": str(root), "ok": ok, "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _loaded_objects() -> list[str]:
+    """Paths of this process's shared objects in the order the dynamic loader loaded them (glibc's
+    ``dl_iterate_phdr`` walks the link map in that order); ``[]`` where it is not available."""
+    import ctypes
+
+    class _Info(ctypes.Structure):
+        _fields_ = [("addr", ctypes.c_void_p), ("name", ctypes.c_char_p), ("phdr", ctypes.c_void_p),
+                    ("phnum", ctypes.c_uint16)]
+
+    names: list[str] = []
+
+    def visit(info, size, data):
+        names.append((info.contents.name or b"").decode("utf-8", "replace"))
+        return 0
+
+    try:
+        callback = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(_Info), ctypes.c_size_t, ctypes.c_void_p)(visit)
+        ctypes.CDLL(None).dl_iterate_phdr(callback, None)
+    except (OSError, AttributeError):
+        return []
+    return names
+
+
+def zlib_shadowed() -> str | None:
+    """Why zlib cannot be used in this process (a sentence for an error or warning), or None when it can.
+
+    pycolmap 4.2.1's wheel links zlib(-ng) into its extension and exports its functions (``deflate``,
+    ``deflateEnd``, ...), and the extension also needs the system's ``libz.so.1``. When pycolmap is the first
+    module of a process to load that library, the loader binds the library's own internal calls to pycolmap's
+    copies (``LD_DEBUG=bindings`` shows ``libz.so.1`` bound to ``pycolmap/_core...so``: ``deflateReset``,
+    ``deflateEnd``, ...). From then on every user of the system zlib -- Python's ``zlib``, so ``np.savez_compressed``
+    and ``gzip``; Pillow's PNG writer, so matplotlib's ``savefig``; OpenCV's PNG codec -- mixes two zlib
+    implementations on one stream and the process aborts (``free(): invalid pointer``). ``import pycolmap`` as
+    the first line of a script does it (so does ``import hloc``, which imports pycolmap first). Anything that loads
+    zlib earlier prevents it: ``import guidedmatch`` imports Python's ``zlib`` first for this reason, and NumPy,
+    OpenCV and Dask load it too. The test: in load order, ``libz.so`` comes after pycolmap's extension, and that
+    extension exports ``deflateEnd``. Linux only; None elsewhere, and None while pycolmap is not imported."""
+    if "pycolmap" not in sys.modules or not sys.platform.startswith("linux"):
+        return None
+    if _ZLIB_VERDICT:  # once pycolmap is loaded the load order is fixed: decided once per process
+        return _ZLIB_VERDICT[0]
+    objects = _loaded_objects()
+    core = next((i for i, n in enumerate(objects)
+                 if os.path.basename(os.path.dirname(n)) == "pycolmap" and n.endswith(".so")), None)
+    libz = next((i for i, n in enumerate(objects) if os.path.basename(n).startswith("libz.so")), None)
+    verdict = None
+    if core is not None and libz is not None and libz > core:
+        import ctypes
+
+        try:
+            exports = hasattr(ctypes.CDLL(objects[core]), "deflateEnd")
+        except OSError:
+            exports = False
+        if exports:
+            verdict = ("pycolmap was imported before anything else in this process loaded zlib, and its extension "
+                       "exports its own zlib, to which the system libz.so.1 got bound: any zlib use in this process "
+                       "(PNG files, np.savez_compressed, gzip) would abort it ('free(): invalid pointer'). Import "
+                       "guidedmatch (or zlib, or numpy) before pycolmap")
+    _ZLIB_VERDICT.append(verdict)
+    return verdict
+
+
+def require_zlib(path) -> None:
+    """Raise :class:`~guidedmatch.errors.OutputError` naming ``path`` when zlib cannot be used in this process
+    (:func:`zlib_shadowed`) -- before a write that would otherwise abort the process."""
+    why = zlib_shadowed()
+    if why is not None:
+        from .errors import OutputError
+
+        raise OutputError(f"cannot write {path}: {why}")

@@ -23,9 +23,15 @@ def _plt():
 
 def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
     """``fig.savefig`` to a temp file next to ``path`` then ``os.replace`` (no partial PNGs)."""
+    from ._runtime import require_zlib
     from .errors import OutputError
 
     path = Path(path)
+    try:
+        require_zlib(path)  # an OutputError now rather than an abort inside the PNG encoder
+    except OutputError:
+        _plt().close(fig)
+        raise
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=path.suffix or ".png", dir=path.parent)

@@ -213,7 +213,11 @@ def write_views(scene: MultiViewScene, folder, ext: str = ".png") -> list[Path]:
     """
     import cv2
 
+    from .._runtime import require_zlib
+
     folder = Path(folder)
+    if ext.lower() == ".png":
+        require_zlib(folder)  # OpenCV's PNG codec uses the system zlib
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for name, img in zip(scene.names, scene.images):
