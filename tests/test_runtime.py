@@ -109,8 +109,10 @@ def test_pycolmap_first_is_detected_exactly_when_zlib_would_abort(tmp_path):
             import numpy as np
             from guidedmatch.features import atomic_savez
             from guidedmatch.plots import _plt, save_figure
+            from guidedmatch.sfm import run_sfm
             for write in (lambda: save_figure(_plt().figure(), {str(png)!r}),
-                          lambda: atomic_savez({str(npz)!r}, a=np.arange(3))):
+                          lambda: atomic_savez({str(npz)!r}, a=np.arange(3)),
+                          lambda: run_sfm({str(tmp_path / "no-images")!r}, {str(tmp_path / "out")!r})):
                 try:
                     write()
                 except OutputError as exc:
@@ -122,8 +124,8 @@ def test_pycolmap_first_is_detected_exactly_when_zlib_would_abort(tmp_path):
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["shadowed"] is aborts and out["warned"] is aborts
     if aborts:
-        assert len(out["errors"]) == 2 and all("before pycolmap" in e for e in out["errors"])
-        assert not png.exists() and not npz.exists()
+        assert len(out["errors"]) == 3 and all("before pycolmap" in e for e in out["errors"])
+        assert not png.exists() and not npz.exists() and not (tmp_path / "out").exists()  # sfm: before any work
 
 
 def test_importing_guidedmatch_first_keeps_zlib_usable_after_pycolmap(tmp_path):

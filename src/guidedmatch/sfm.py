@@ -698,11 +698,15 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     """Run (or resume) the three stages; write ``report.json``, ``report.md`` and the figure. Returns the report.
 
     Raises before any work: InputError (no / one readable image), OutputError (OUT_DIR of another project or made
-    with other settings), ConfigError (bad settings)."""
+    with other settings; a process where zlib cannot be used, :func:`guidedmatch._runtime.zlib_shadowed`),
+    ConfigError (bad settings)."""
     from .evaluation.meta import run_metadata, write_json
     from .features import atomic_write_text
 
+    from ._runtime import require_zlib
+
     conf = config_from(SfmConfig, conf)
+    require_zlib(paths.figure)  # a process where the figure's PNG encoder would abort: say so before any work
     t_start = time.perf_counter()
     names, skipped = check_images(paths.image_dir)
     project = check_output(conf, paths, names)
