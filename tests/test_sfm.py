@@ -120,6 +120,30 @@ def test_parse_camera_and_listing(tmp_path):
     assert good == ["a.png", "x/b.PNG"] and [s["name"] for s in skipped] == ["c.jpg"]
 
 
+def test_image_check_parses_headers_and_falls_back_to_opencv(tmp_path, monkeypatch):
+    """Headers are parsed, pixels are not decoded: a damaged header is unreadable, truncated pixel data is left to the
+    extractor; a format Pillow does not know goes to OpenCV's decoder (simulated)."""
+    from PIL import Image
+
+    from guidedmatch.sfm import _image_readable
+
+    _noise_png(tmp_path / "a.png", 0)
+    rng = np.random.default_rng(1)
+    cv2.imwrite(str(tmp_path / "b.jpg"), rng.integers(0, 255, (240, 320), np.uint8))
+    data = (tmp_path / "b.jpg").read_bytes()
+    (tmp_path / "trunc.jpg").write_bytes(data[: len(data) // 3])
+    (tmp_path / "zeros.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 64)
+    (tmp_path / "text.jpg").write_bytes(b"hello, not an image")
+    readable = {n: _image_readable(tmp_path / n) for n in ("a.png", "b.jpg", "trunc.jpg", "zeros.png", "text.jpg")}
+    assert readable == {"a.png": True, "b.jpg": True, "trunc.jpg": True, "zeros.png": False, "text.jpg": False}
+
+    def unknown(*a, **k):
+        raise Image.UnidentifiedImageError("unknown format")
+
+    monkeypatch.setattr(Image, "open", unknown)   # Pillow knows no format: OpenCV decides
+    assert _image_readable(tmp_path / "a.png") is True and _image_readable(tmp_path / "text.jpg") is False
+
+
 def test_plot_reconstruction(tmp_path):
     """The figure from a synthetic pycolmap model (two cameras, a few points)."""
     import pycolmap

@@ -182,10 +182,32 @@ def list_images(image_dir: str | os.PathLike) -> list[str]:
                   if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
 
 
+def _image_readable(path: Path) -> bool:
+    """Whether ``path`` looks like an image the extractors can read: its header parses (Pillow, no pixels decoded:
+    ~2 ms per file), or else OpenCV decodes it at 1/8 resolution (formats Pillow does not know). Truncated or
+    otherwise damaged pixel data is left to the extractor, which reports the image as failed."""
+    try:
+        from PIL import Image, UnidentifiedImageError
+
+        with Image.open(path) as im:
+            im.verify()
+        return True
+    except (ImportError, UnidentifiedImageError):
+        pass
+    except (OSError, ValueError, SyntaxError):  # a known format whose header is damaged
+        return False
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    return img is not None and img.size > 0
+
+
 def check_images(image_dir: str | os.PathLike) -> tuple[list[str], list[dict]]:
     """Split the folder's images into readable names and skipped ``{"name", "reason"}`` entries.
 
-    Each image is decoded at 1/8 resolution (cheap for JPEG) with OpenCV; a file OpenCV cannot decode is skipped.
+    Each image's header is parsed (:func:`_image_readable`; decoding every photo even at 1/8 resolution took 0.2 s
+    for the 8 Herz-Jesus-P8 photos, i.e. ~25 ms per 6-Mpixel JPEG: half a minute before any work for a thousand);
+    a file that does not parse is skipped.
 
     Raises:
         InputError: the folder is missing, holds no image files, or fewer than 2 readable images.
@@ -207,17 +229,13 @@ def check_images(image_dir: str | os.PathLike) -> tuple[list[str], list[dict]]:
     try:
         from concurrent.futures import ThreadPoolExecutor
 
-        def readable(n: str) -> bool:
-            img = cv2.imread(str(root / n), cv2.IMREAD_REDUCED_GRAYSCALE_8)
-            return img is not None and img.size > 0
-
-        with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:  # imread releases the GIL
-            ok = list(pool.map(readable, names))
+        with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:  # file reads overlap
+            ok = list(pool.map(lambda n: _image_readable(root / n), names))
         for n, r in zip(names, ok):
             if r:
                 good.append(n)
             else:
-                skipped.append({"name": n, "reason": "unreadable (OpenCV cannot decode it)"})
+                skipped.append({"name": n, "reason": "unreadable (not an image file its format's reader can parse)"})
     finally:
         if old_level is not None:
             cv2.utils.logging.setLogLevel(old_level)
