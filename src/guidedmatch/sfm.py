@@ -425,51 +425,6 @@ def _set_known_camera(db_path: Path, cam: tuple[str, list[float]]) -> None:
         db.close()
 
 
-class _WarmUp(threading.Thread):
-    """The matching stage's imports and Numba's set-up, run in a thread while pycolmap extracts (see
-    :func:`_warm_up_matching`); :meth:`join_and_time` waits for it and returns its seconds, or the error text when it
-    failed (the matching stage then does the same work itself and raises whatever is wrong)."""
-
-    def __init__(self) -> None:
-        super().__init__(name="guidedmatch-sfm-warm-up", daemon=True)
-        self.seconds: float | str | None = None
-
-    def run(self) -> None:
-        t0 = time.perf_counter()
-        try:
-            import cv2  # noqa: F401 - the verdict's RANSAC
-            import faiss  # noqa: F401 - the approximate indexes
-
-            from .collection import engine, pairs, sinks, sources  # noqa: F401
-            from .jit import _precompile
-
-            engine._load_numba()          # Numba's CPU target (without SciPy's BLAS probe in a process of ours)
-            for group in ("guided", "order"):
-                _precompile("sift", group)  # load (first run: compile) the kernels the pairs need
-            self.seconds = time.perf_counter() - t0
-        except Exception as exc:  # noqa: BLE001 - reported; the matching stage redoes this and raises properly
-            self.seconds = f"{type(exc).__name__}: {exc}"
-
-    def join_and_time(self) -> float | str | None:
-        self.join()
-        return self.seconds
-
-
-def _warm_up_matching(conf: "SfmConfig") -> _WarmUp | None:
-    """Start the matching stage's set-up in a thread while pycolmap extracts features: the imports of the collection
-    engine, faiss and OpenCV, Numba's CPU target and the SIFT kernels (0.8 s in a fresh process on Herz-Jesus-P8,
-    mostly holding the GIL; seconds of compilation on a first-ever run). ``pycolmap.extract_features`` releases the
-    GIL, so this runs beside it; it takes CPU from the extraction, which keeps both cores busy, but only as much as
-    the matching stage would otherwise spend on it afterwards, on the critical path. Only for COLMAP SIFT extraction with in-process matching
-    possible (no ``--scheduler``, ``workers`` 0 or automatic): our own detectors extract in Python (the GIL), and a
-    cluster's client never loads Numba. The report records the warm-up's seconds (``matching_warm_up``)."""
-    if conf.detector != "colmap" or conf.scheduler or (conf.workers or 0) > 0:
-        return None
-    warm = _WarmUp()
-    warm.start()
-    return warm
-
-
 # --------------------------------------------------------------------------- stage 2: matching
 def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     """Stage 2: match the pair list with the collection engine into the database (pairs already there skipped);
@@ -677,11 +632,6 @@ def report_markdown(report: dict) -> str:
                  + " |")
     mp = st["mapping"]
     best = mp["models"][mp["best"]] if mp.get("best") is not None else None
-    warm = report.get("matching_warm_up")
-    if warm is not None:
-        lines.append(f"| matching set-up, during extraction | {_fmt_s(warm) if isinstance(warm, float) else '-'} | "
-                     + ("imports, Numba's set-up, kernel loads (not on the critical path) |" if isinstance(warm, float)
-                        else f"failed ({warm}); redone by the matching stage |"))
     lines.append(f"| mapping | {_fmt_s(mp['time_s'])} | {len(mp['models'])} model(s) |")
     lines.append(f"| total | {_fmt_s(report['total_time_s'])} | |")
     lines += ["", "## Reconstruction (sparse/0)", ""]
@@ -736,9 +686,11 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     if skipped:
         _say(conf, f"skipping {len(skipped)} unreadable image(s): " + ", ".join(s["name"] for s in skipped))
 
-    warm = _warm_up_matching(conf)
-    extraction = extract_main(conf, paths, names)   # on an error, the daemon warm-up thread is not waited for
-    warm_s = warm.join_and_time() if warm is not None else None
+    # No matching set-up in a thread during the extraction (session 20 had one): pycolmap's extractor keeps both cores
+    # busy, and 8 alternating fresh runs on Herz-Jesus-P8 showed the thread's 0.65-0.89 s of imports and kernel loads
+    # costing the extraction 0.14-2.0 s (median ~0.75) for 0.3-0.5 s saved in matching: extraction + matching was
+    # 0.35 s longer with it (median; 7 of 8 rounds longer). docs/collections.md, session 21.
+    extraction = extract_main(conf, paths, names)
     for n in extraction["failed"]:
         skipped.append({"name": n, "reason": "the feature extractor could not read it or found no features"})
     names = [n for n in names if n not in set(extraction["failed"])]
@@ -769,7 +721,6 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     report = {"image_dir": str(paths.image_dir), "out_dir": str(paths.out_dir), "command": command,
               "config": dataclasses.asdict(conf), "num_images": len(names), "skipped_images": skipped,
               "stages": {"extraction": extraction, "matching": matching, "mapping": mapping},
-              "matching_warm_up": warm_s,
               "total_time_s": time.perf_counter() - t_start,
               "registered": best["registered"] if best else 0, "points3D": best["points3D"] if best else 0,
               "unregistered": sorted(set(names) - set(best["registered_names"])) if best else names,
