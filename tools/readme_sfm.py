@@ -40,6 +40,13 @@ colmap gui --database_path project/database.db --image_path photos/ --import_pat
 
 `--camera PINHOLE:fx,fy,cx,cy` for known intrinsics, `--single-camera`, `--max-features N`, `--detector ours:orb`,
 `--geometry colmap` to let COLMAP verify our matches instead of writing our two-view geometries.
+
+In Python, **import guidedmatch (or NumPy) before pycolmap or hloc**. pycolmap 4.2.1's wheel carries its own zlib
+and exports it; when `import pycolmap` (or `import hloc`, which imports it) is the first thing a process does, the
+system zlib gets bound to that copy and the next PNG, `np.savez_compressed` or gzip write aborts the process
+(`free(): invalid pointer`). `import guidedmatch` loads the system zlib first; imported after pycolmap it warns
+(`RuntimeWarning`) if the process is already affected, and its own writers then raise `OutputError` instead of
+aborting (`guidedmatch._runtime.zlib_shadowed`, tested in a fresh interpreter in `tests/test_runtime.py`).
 """
 
 
