@@ -107,7 +107,8 @@ def test_pycolmap_first_is_detected_exactly_when_zlib_would_abort(tmp_path):
                    errors=[])
         if out["shadowed"]:  # our writers refuse instead of aborting (without the check they would abort here)
             import numpy as np
-            from guidedmatch.features import atomic_savez
+            from guidedmatch.features import atomic_savez, atomic_write_text
+            atomic_write_text({str(tmp_path / "x.txt")!r}, "plain text needs no zlib")
             from guidedmatch.plots import _plt, save_figure
             from guidedmatch.sfm import run_sfm
             for write in (lambda: save_figure(_plt().figure(), {str(png)!r}),
@@ -126,6 +127,7 @@ def test_pycolmap_first_is_detected_exactly_when_zlib_would_abort(tmp_path):
     if aborts:
         assert len(out["errors"]) == 3 and all("before pycolmap" in e for e in out["errors"])
         assert not png.exists() and not npz.exists() and not (tmp_path / "out").exists()  # sfm: before any work
+        assert (tmp_path / "x.txt").read_text() == "plain text needs no zlib"
 
 
 def test_importing_guidedmatch_first_keeps_zlib_usable_after_pycolmap(tmp_path):

@@ -305,12 +305,8 @@ def atomic_savez(path: str | os.PathLike, **arrays: Any) -> None:
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write text to a temp file in the target folder, then ``os.replace``.
 
-    Raises :class:`~guidedmatch.errors.OutputError` naming ``path`` when it cannot be written (also when zlib
-    cannot be used in this process: :func:`guidedmatch._runtime.zlib_shadowed`)."""
-    from ._runtime import require_zlib
-
+    Raises :class:`~guidedmatch.errors.OutputError` naming ``path`` when it cannot be written."""
     path = Path(path)
-    require_zlib(path)
     with _output_errors(path):
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
