@@ -244,3 +244,27 @@ def test_sfm_colmap_verification_single_camera(rendered, tmp_path):
     assert rep["registered"] == 5
     assert rep["stages"]["matching"]["verified_pairs"] >= 8
     assert rep["stages"]["matching"]["verify_time_s"] > 0
+
+
+def test_mapper_profile_tool_reads_colmaps_log(rendered, tmp_path):
+    """tools/mapper_profile.py on a real database: the model it reports is the one the mapper built, and every bundle
+    adjustment is parsed (the global one after the initial pair first)."""
+    import importlib.util
+
+    from guidedmatch.sfm import run_sfm
+
+    scene, folder = rendered
+    rep = run_sfm(folder, tmp_path / "proj", {"detector": "ours:sift", "camera": _known_camera(scene), "workers": 0,
+                                               "num_threads": 2, "progress": False})
+    spec = importlib.util.spec_from_file_location(
+        "mapper_profile", Path(__file__).resolve().parents[1] / "tools" / "mapper_profile.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    out = tool.profile(tmp_path / "proj" / "database.db", folder)
+    assert out["registered"] == rep["registered"] == 5
+    assert out["points"] > 100 and out["observations"] >= 2 * out["points"]
+    rows = out["adjustments"]
+    assert len(rows) >= 5 and rows[0]["stage"] == "Global bundle adjustment"
+    assert all(r["residuals"] > 0 and r["iterations"] >= 1 and r["time_s"] >= 0 for r in rows)
+    assert {r["termination"] for r in rows} <= {"CONVERGENCE", "NO_CONVERGENCE", "USER_SUCCESS"}
+    assert any(r["stage"].startswith("Registering image #") for r in rows)
