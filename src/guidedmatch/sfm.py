@@ -668,10 +668,9 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     Raises before any work: InputError (no / one readable image), OutputError (OUT_DIR of another project or made
     with other settings; a process where zlib cannot be used, :func:`guidedmatch._runtime.zlib_shadowed`),
     ConfigError (bad settings)."""
+    from ._runtime import require_zlib
     from .evaluation.meta import run_metadata, write_json
     from .features import atomic_write_text
-
-    from ._runtime import require_zlib
 
     conf = config_from(SfmConfig, conf)
     require_zlib(paths.figure)  # a process where the figure's PNG encoder would abort: say so before any work
