@@ -48,10 +48,11 @@ __all__ = sorted(_EXPORTS) + ["__version__"]
 if "pycolmap" in sys.modules:  # imported before us: it may already have captured the system zlib
     from ._runtime import zlib_shadowed as _zlib_shadowed
 
-    if _zlib_shadowed():
+    _why = _zlib_shadowed()
+    if _why:
         import warnings
 
-        warnings.warn(_zlib_shadowed(), RuntimeWarning, stacklevel=2)
+        warnings.warn(_why, RuntimeWarning, stacklevel=2)
 
 
 def __getattr__(name: str):
