@@ -11,6 +11,7 @@ import os
 import sys
 import threading
 import time
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -231,6 +232,89 @@ def test_prefetch_builds_the_queued_indexes_in_order_until_told_to_stop():
     # the order: each queued pair's second image, in the order the in-process runner takes the tasks
     q = engine._Queue(plan_tasks([("a", "b"), ("a", "c"), ("b", "c"), ("d", "a")], ["a", "b", "c", "d"], 2))
     assert engine._index_order(q) == ["b", "c", "a"]
+
+
+class _Sized:
+    """A cached image of a given size whose "index" the simulation below builds when it is searched."""
+
+    def __init__(self, nbytes: int):
+        self.nbytes, self._index = nbytes, None
+
+
+class _SizedSource:
+    def __init__(self, sizes):
+        self.sizes = sizes
+
+    def load(self, name):
+        return _Sized(self.sizes[name])
+
+
+def _simulate(plan, sizes, cache_bytes):
+    """Run ``plan`` in order through the engine's own image cache, one pair at a time as the in-process runner
+    does; ``{image: index builds}`` (an image is indexed when a pair searches it, i.e. it is the second image)."""
+    with mock.patch.object(engine, "_prepare_fn", lambda: None):  # the sizes are what is cached
+        cache = _ImageCache(_SizedSource(sizes), _TaskSpec("t", "so+epi+ia", MatcherConfig(), cache_bytes=cache_bytes,
+                                                           single_thread=False))
+    builds = dict.fromkeys(sizes, 0)
+    for tasks in plan.values():
+        for task in tasks:
+            for a, b in task:
+                cache.get(a, (a, b))
+                item = cache.get(b, (a, b))
+                assert a in cache.items and b in cache.items
+                if item.prepared._index is None:
+                    item.prepared._index, builds[b] = object(), builds[b] + 1
+    return builds, cache
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(3, 14), st.data())
+def test_plan_sweeps_a_collection_larger_than_the_cache_and_indexes_each_image_once(n, data):
+    names = [f"im{i:02d}" for i in range(n)]
+    sizes = {k: data.draw(st.integers(1, 10)) for k in names}
+    everything = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    pairs = data.draw(st.lists(st.sampled_from(everything), min_size=1, unique=True))
+    pairs = [(b, a) if data.draw(st.booleans()) else (a, b) for a, b in pairs]   # any orientation
+    cache_bytes = data.draw(st.integers(2 * max(sizes.values()), sum(sizes.values()) + 10))
+    chunk = data.draw(st.integers(1, 5))
+    plan = plan_tasks(pairs, names, chunk, sizes=sizes, cache_bytes=cache_bytes)
+    got = [p for tasks in plan.values() for t in tasks for p in t]
+    assert sorted(got) == sorted(pairs)                                  # every pair once, orientation kept
+    used = {x for p in pairs for x in p}
+    if sum(sizes[k] for k in used) <= cache_bytes:                       # fits: the plain anchor plan
+        assert plan == plan_tasks(pairs, names, chunk)
+    else:
+        blocks = engine.resident_blocks(sorted(used), sizes, cache_bytes)
+        for (k, a), tasks in plan.items():
+            assert all(x == a and blocks[b] == k for t in tasks for x, b in t)
+        assert [k for k, _ in plan] == sorted(k for k, _ in plan)       # sweep after sweep
+    builds, _ = _simulate(plan, sizes, cache_bytes)
+    assert max(builds.values()) <= 1                                     # no image is indexed twice
+
+
+def test_plan_sweeps_cut_the_loads_of_an_exhaustive_collection():
+    names = [f"im{i:02d}" for i in range(30)]
+    sizes = dict.fromkeys(names, 10)
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    cache_bytes = 100                                                    # 10 images of 30: blocks of 7
+    plain, _ = _simulate(plan_tasks(pairs, names, 16), sizes, cache_bytes)
+    swept, cache = _simulate(plan_tasks(pairs, names, 16, sizes=sizes, cache_bytes=cache_bytes), sizes, cache_bytes)
+    assert sum(plain.values()) > 300 and sum(swept.values()) == 29      # each searched image indexed once
+    assert cache.loads < 5 * 30                                          # 5 sweeps: each image at most once a sweep
+
+
+def test_cache_evicts_images_without_an_index_first(monkeypatch):
+    monkeypatch.setattr(engine, "_prepare_fn", lambda: None)
+    cache = _ImageCache(_SizedSource(dict.fromkeys("abcd", 10)),
+                        _TaskSpec("t", "so+epi+ia", MatcherConfig(), cache_bytes=30, single_thread=False))
+    cache.get("a", ("a",)).prepared._index = object()                   # oldest, but indexed
+    cache.get("b", ("b",))
+    cache.get("c", ("c",))
+    cache.get("d", ("d",))                                               # over the bound: b goes, not a
+    assert list(cache.items) == ["a", "c", "d"]
+    cache.items["c"].prepared._index = cache.items["d"].prepared._index = object()
+    cache.get("b", ("b",))                                               # only indexed ones left: LRU (a)
+    assert list(cache.items) == ["c", "d", "b"]
 
 
 def test_small_cache_same_matches_more_loads(views):
@@ -563,6 +647,24 @@ def test_cli_refuses_a_second_writer_and_bad_inputs_with_one_line(rendered_db, t
     with ColmapSink(db):  # another writer holds the database
         one_line_error(run_cli("colmap", db, "--workers", "0"), "being written by another process")
     assert db_rows(db) == {}
+
+
+def test_cli_cache_smaller_than_the_collection_sweeps_and_writes_the_same_database(rendered_db, tmp_path):
+    """--cache-mb 1 (less than one image): the pairs run in sweeps, the summary says so, and the database holds the
+    same matches and geometries as a run with the whole collection cached."""
+    import shutil
+
+    root, mv = rendered_db
+    small, big = tmp_path / "small.db", tmp_path / "big.db"
+    shutil.copy(root / "fresh.db", small)
+    shutil.copy(root / "fresh.db", big)
+    r = run_cli("colmap", small, "--workers", "0", "--threads", "2", "--cache-mb", "1", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "sweeps over resident blocks" in r.stdout, r.stdout
+    r = run_cli("colmap", big, "--workers", "0", "--threads", "2", "--no-progress")
+    assert r.returncode == 0 and "sweeps" not in r.stdout, r.stdout
+    assert db_rows(small) == db_rows(big) and len(db_rows(big)) == len(mv.names) * (len(mv.names) - 1) // 2
+    assert run_cli("colmap", small, "--cache-mb", "0").returncode == 2  # argparse: a positive integer
 
 
 def test_cli_pair_whose_features_cannot_be_loaded_fails_with_one_line_and_the_rest_is_written(rendered_db, tmp_path):
