@@ -393,6 +393,8 @@ COLMAP_EXAMPLES = """examples:
   guidedmatch colmap db.db --scheduler tcp://10.0.0.1:8786     # a running Dask cluster (shared storage)
   guidedmatch colmap db.db --geometry colmap                   # raw matches, then COLMAP's own verification
   guidedmatch colmap db.db --workers 2 --timeline run.png      # and a figure of when each pair ran, per worker
+  guidedmatch colmap db.db --config max_unguided=0.005         # many unrelated 50k+-feature images: rejects them
+                                                               # ~3x sooner, loses pairs verified late (docs/collections.md)
   colmap mapper --database_path db.db --image_path images --output_path sparse   # then map as usual
 
 Interrupted? Run the same command again: pairs already in the database are skipped.
