@@ -3,6 +3,8 @@
 Every result is compared with a slow, obviously correct plain-NumPy reference written here (exact integer or
 float64 arithmetic), never with recorded outputs of the code under test.
 """
+from unittest import mock
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -496,6 +498,55 @@ def test_top2_gemm_bit_identical_to_numpy(r, c, ties, serial, write_back, seed):
         np.testing.assert_array_equal(blk.view(np.uint32), ref.view(np.uint32))
     else:
         np.testing.assert_array_equal(blk.view(np.uint32), dot.view(np.uint32))
+
+
+# --------------------------------------------------------------------------- topk_gemm (IVF coarse step)
+@settings(max_examples=80, deadline=None)
+@given(r=st.integers(0, 12), c=st.integers(0, 40), k=st.integers(1, 6), ties=st.booleans(),
+       seed=st.integers(0, 2**32 - 1))
+def test_topk_gemm_serial_bit_identical_to_numpy(r, c, k, ties, seed):
+    rng = np.random.default_rng(seed)
+    if ties:
+        dot = rng.integers(-3, 4, (r, c)).astype(np.float32)
+        nn2 = rng.integers(0, 7, c).astype(np.float32)
+        qn = rng.integers(0, 7, r).astype(np.float32)
+    else:
+        dot = (rng.normal(size=(r, c)) * 10).astype(np.float32)
+        nn2 = rng.uniform(0, 50, c).astype(np.float32)
+        qn = rng.uniform(0, 50, r).astype(np.float32)
+    ref = np.maximum((qn[:, None] + nn2[None, :]) + dot * np.float32(-2.0), 0)   # faiss's order
+    idx, dist = kernels.topk_gemm_serial(dot, nn2, qn, k)
+    assert idx.shape == dist.shape == (r, k) and idx.dtype == np.int64 and dist.dtype == np.float32
+    for row in range(r):
+        order = np.lexsort((np.arange(c), ref[row]))[:k]      # by distance, then the lower index
+        want_i = np.full(k, -1)
+        want_i[:len(order)] = order
+        want_d = np.full(k, np.inf, np.float32)
+        want_d[:len(order)] = ref[row, order]
+        assert idx[row].tolist() == want_i.tolist()
+        np.testing.assert_array_equal(dist[row].view(np.uint32), want_d.view(np.uint32))
+
+
+@settings(max_examples=30, deadline=None)
+@given(q=st.integers(0, 700), c=st.integers(1, 50), k=st.integers(1, 5), threads=st.sampled_from([1, 2, None]),
+       block=st.sampled_from([1, 5, 64, 1024]), seed=st.integers(0, 2**32 - 1))
+def test_topk_gemm_in_row_chunks_equals_one_block(q, c, k, threads, block, seed):
+    rng = np.random.default_rng(seed)
+    x = rng.integers(0, 256, (q, 16)).astype(np.float32)
+    cent = rng.uniform(0, 255, (c, 16)).astype(np.float32)
+    cn = np.einsum("ij,ij->i", cent, cent)
+    with mock.patch.object(kernels, "_TOPK_BLOCK", block):  # thread chunks cut in GEMM blocks of `block` rows
+        idx, dist = kernels.topk_gemm(x, cent, cn, k, threads)
+    assert idx.shape == dist.shape == (q, k)
+    # the k nearest centroids by a float64 reference; GEMMs of other shapes round differently, so distances agree
+    # to float32 precision and the order may differ only between near-equal distances
+    ref = ((x[:, None, :].astype(np.float64) - cent[None].astype(np.float64)) ** 2).sum(-1)
+    want = np.sort(ref, 1)[:, :k]
+    kk = min(k, c)
+    np.testing.assert_allclose(dist[:, :kk], want[:, :kk], rtol=1e-5, atol=0.5)
+    got = np.take_along_axis(ref, np.maximum(idx[:, :kk], 0), 1)
+    np.testing.assert_allclose(got, want[:, :kk], rtol=1e-5, atol=0.5)
+    assert np.all(idx[:, kk:] == -1) and np.all(np.isinf(dist[:, kk:]))
 
 
 # --------------------------------------------------------------------------- as_exact_uint8

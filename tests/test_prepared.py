@@ -74,6 +74,32 @@ def test_search2_approximate_distances_exact_and_counted():
     assert p.index_build_s > 0
 
 
+def test_search2_probes_the_cells_faiss_quantizer_would():
+    """search2's coarse step (GEMM + kernels.topk_gemm) picks the cells faiss's own flat quantizer picks, so the
+    search is the same IVF search; only near-ties of two centroid distances (float32 rounding of two different
+    GEMMs) may order differently."""
+    f = _sift_like(4000, seed=8)
+    q = _sift_like(3000, seed=9).descriptors
+    p = prepare(f)
+    index = p.index()
+    Dq, Iq = index.quantizer.search(np.ascontiguousarray(q, np.float32), index.nprobe)
+    cent, cn = p._centroids()
+    mine_i, mine_d = kernels.topk_gemm(q, cent, cn, index.nprobe)
+    np.testing.assert_allclose(mine_d, Dq, rtol=1e-5, atol=1e-2)
+    differ = (mine_i != Iq).any(1)
+    gaps = np.diff(np.sort(Dq, 1), axis=1).min(1) if index.nprobe > 1 else np.full(len(q), np.inf)
+    assert np.all(gaps[differ] <= 1e-3 * Dq[differ].max(1))  # only near-ties differ
+    assert differ.mean() < 0.01
+    # and search2 returns what faiss's search over those cells returns
+    D, I = index.search(np.ascontiguousarray(q, np.float32), 2)
+    i1, s1, i2, s2, _ = p.search2(q)
+    same = ~differ
+    assert np.array_equal(i1[same], I[same, 0]) and np.array_equal(s1[same], D[same, 0])
+    # the centroids survive pickling (rebuilt with the index)
+    p2 = pickle.loads(pickle.dumps(p))
+    assert p2._coarse is None and np.array_equal(p2.search2(q[:50])[0], i1[:50])
+
+
 def test_index_deterministic_and_rebuilt_after_pickle():
     f = _sift_like(2500, seed=6)
     q = _sift_like(50, seed=7).descriptors

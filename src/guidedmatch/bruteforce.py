@@ -116,17 +116,20 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
 _CONTROLLER: list = [None, -1]  # [ThreadpoolController, len(sys.modules) when it was built]
 
 
-def _blas_controller():
+def _blas_controller(load_scipy: bool = True):
     """A ``threadpoolctl.ThreadpoolController`` of the BLAS libraries loaded now (inspecting them takes ~2 ms).
 
     Rebuilt only when modules were imported since the last call (a new extension module -- faiss, another SciPy
-    -- may bring its own BLAS, which a stale controller would leave multi-threaded). SciPy's BLAS is loaded first
-    (Numba's linear algebra and our geometry use it), so it is limited as well.
+    -- may bring its own BLAS, which a stale controller would leave multi-threaded). With ``load_scipy`` SciPy's
+    BLAS is loaded first (Numba's linear algebra and our geometry use it), so it is limited as well; without, only
+    what is loaded now (NumPy's BLAS, for NumPy GEMMs: importing ``scipy.linalg`` costs 0.13 s, which a collection
+    run otherwise never pays).
     """
     import importlib
     import sys
 
-    importlib.import_module("scipy.linalg")  # loads SciPy's OpenBLAS before the libraries are listed
+    if load_scipy:
+        importlib.import_module("scipy.linalg")  # loads SciPy's OpenBLAS before the libraries are listed
     if _CONTROLLER[0] is None or _CONTROLLER[1] != len(sys.modules):
         from threadpoolctl import ThreadpoolController
 

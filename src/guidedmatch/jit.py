@@ -185,6 +185,7 @@ def _precompile(detector: str, group: str) -> None:
         if sift:
             d = kernels.as_exact_uint8(desc)
             kernels.top2_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), False)
+            kernels.topk_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), 4)  # IVF coarse
         else:
             d = kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
             kernels.hamming_top2(d, d)

@@ -16,7 +16,9 @@ the second image of a pair whose unguided phase uses it, then kept. Measured on 
 pair with 4.5-4.8 % of the N1*N2 distance evaluations (coarse + fine) in 0.06-0.15 s against 0.6-1.3 s for the
 exact GEMM top-2 in 64-query batches (0.10-0.12 of it), its nearest neighbour agrees with the exact one on 98.8-100 %
 of the ratio-test matches, and it builds in 0.09-0.19 s; HNSW (M = 32, efSearch 32) needs 0.54-1.16 of the GEMM
-time and builds in 0.4-1.1 s, IVF with nprobe 8 (362 cells) 0.14-0.21.
+time and builds in 0.4-1.1 s, IVF with nprobe 8 (362 cells) 0.14-0.21. The coarse step of a search (which cells)
+is our own GEMM + fused top-k (:func:`guidedmatch.kernels.topk_gemm`, the same cells as faiss's flat quantizer at a
+third of its time); faiss then searches the chosen lists (``search_preassigned``).
 
 Pickling drops the index (it is rebuilt on first use in the receiving process); everything else is plain arrays.
 """
@@ -94,6 +96,7 @@ class PreparedImage:
         # its NaN/inf scan of these descriptors (False only costs that scan, e.g. values too large to square)
         self.finite = True if self.binary else bool(np.isfinite(self.sqnorms).all())
         self._index = None
+        self._coarse = None  # (centroids, their squared norms, the index they came from): search2's coarse step
         self._lock = threading.Lock()
         self.index_build_s = 0.0
 
@@ -108,6 +111,7 @@ class PreparedImage:
     def __getstate__(self):
         state = dict(self.__dict__)
         state["_index"] = None
+        state["_coarse"] = None
         state.pop("_lock", None)
         return state
 
@@ -179,6 +183,15 @@ class PreparedImage:
         self.index_build_s = time.perf_counter() - t0
         return index
 
+    def _centroids(self) -> tuple[np.ndarray, np.ndarray]:
+        """The index's coarse centroids ``(nlist, D) float32`` and their squared norms (cached with the index)."""
+        c = self._coarse
+        if c is None or c[2] is not self._index:
+            index = self.index()
+            cent = np.ascontiguousarray(index.quantizer.reconstruct_n(0, index.nlist), np.float32)
+            c = self._coarse = (cent, np.einsum("ij,ij->i", cent, cent), index)
+        return c[0], c[1]
+
     def search2(self, queries: np.ndarray):
         """Approximate 2-NN of float ``queries (Q, D)`` in this image: ``(i1, s1, i2, s2, comparisons)``.
 
@@ -192,8 +205,12 @@ class PreparedImage:
         q = np.ascontiguousarray(queries, np.float32)
         # the calling thread's kernel thread count (1 in a collection's pair threads): a batch of >= 64 queries keeps
         # faiss's OpenMP team busy (Herz-Jesus ~40k unrelated pair: unguided start 0.6 -> 0.35 s on 2 cores)
-        with _faiss_threads(kernels.num_threads() if len(q) >= 64 else 1):
-            Dq, Iq = index.quantizer.search(q, index.nprobe)
+        threads = kernels.num_threads() if len(q) >= 64 else 1
+        # the coarse step (nearest nprobe of nlist centroids) as one GEMM + a fused top-k per row instead of faiss's
+        # flat quantizer search, whose per-row heap selection cost 3x the GEMM: 68k queries vs 637 centroids 0.57-0.64
+        # -> 0.16-0.24 s (one thread), the same cells for every query (docs/pairs.md)
+        Iq, Dq = kernels.topk_gemm(q, *self._centroids(), min(int(index.nprobe), self.nlist), threads)
+        with _faiss_threads(threads):
             D, I = index.search_preassigned(q, 2, Iq, Dq)
         comparisons = int(len(q)) * self.nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
         D = np.where(I >= 0, D, np.inf).astype(np.float32)
@@ -263,6 +280,7 @@ class UnguidedSearch:
         self.ivf_queries = self.ivf_comparisons = 0
         self.index_build_s = 0.0
         self._dense = None
+        self._blas = None
 
     @staticmethod
     def choose(p2: PreparedImage, use_index: bool = True) -> str:
@@ -297,12 +315,22 @@ class UnguidedSearch:
             from .bruteforce import DenseKnn2
 
             self._dense = DenseKnn2(self.p2.descriptors, self.p2.sqnorms).__enter__()
+        if self.kind == "ivf":
+            # the index's coarse GEMMs (search2) run one per kernel thread: BLAS single-threaded meanwhile, as in
+            # DenseKnn2 (two collection threads' unrelated 68k pairs: 1.3-1.6 s with BLAS's own threads on top,
+            # 0.84-0.95 s without; /tmp/s22/s2conc.py)
+            from .bruteforce import _blas_controller
+
+            self._blas = _blas_controller(load_scipy=False).limit(limits=1, user_api="blas")
         return self
 
     def __exit__(self, *exc) -> None:
         if self._dense is not None:
             self._dense.__exit__(*exc)
             self._dense = None
+        if self._blas is not None:
+            self._blas.restore_original_limits()
+            self._blas = None
 
     def query(self, queries: np.ndarray):
         queries = np.asarray(queries, np.int64)
