@@ -469,12 +469,11 @@ def test_counting_order_is_stable_argsort(key, extra):
 
 
 # --------------------------------------------------------------------------- top2_gemm
-@settings(max_examples=80, deadline=None)
-@given(r=st.integers(0, 12), c=st.integers(0, 40), ties=st.booleans(), serial=st.booleans(),
-       write_back=st.booleans(), seed=st.integers(0, 2**32 - 1))
-def test_top2_gemm_bit_identical_to_numpy(r, c, ties, serial, write_back, seed):
+def gemm_block(r, c, ties, seed):
+    """A GEMM block ``dot (r, c)`` with column and row squared norms; ``ties``: small integers (many equal
+    distances, and clamped (zero) ones)."""
     rng = np.random.default_rng(seed)
-    if ties:  # small integers: many equal distances, and clamped (zero) ones
+    if ties:
         dot = rng.integers(-3, 4, (r, c)).astype(np.float32)
         nn2 = rng.integers(0, 7, c).astype(np.float32)
         qn = rng.integers(0, 7, r).astype(np.float32)
@@ -482,6 +481,14 @@ def test_top2_gemm_bit_identical_to_numpy(r, c, ties, serial, write_back, seed):
         dot = (rng.normal(size=(r, c)) * 10).astype(np.float32)
         nn2 = rng.uniform(0, 50, c).astype(np.float32)
         qn = rng.uniform(0, 50, r).astype(np.float32)
+    return dot, nn2, qn
+
+
+@settings(max_examples=80, deadline=None)
+@given(r=st.integers(0, 12), c=st.integers(0, 40), ties=st.booleans(), serial=st.booleans(),
+       write_back=st.booleans(), seed=st.integers(0, 2**32 - 1))
+def test_top2_gemm_bit_identical_to_numpy(r, c, ties, serial, write_back, seed):
+    dot, nn2, qn = gemm_block(r, c, ties, seed)
     ref = np.maximum((dot * np.float32(-2.0) + nn2[None, :]) + qn[:, None], 0)
     assert ref.dtype == np.float32
     blk = dot.copy()
@@ -505,15 +512,7 @@ def test_top2_gemm_bit_identical_to_numpy(r, c, ties, serial, write_back, seed):
 @given(r=st.integers(0, 12), c=st.integers(0, 40), k=st.integers(1, 6), ties=st.booleans(),
        seed=st.integers(0, 2**32 - 1))
 def test_topk_gemm_serial_bit_identical_to_numpy(r, c, k, ties, seed):
-    rng = np.random.default_rng(seed)
-    if ties:
-        dot = rng.integers(-3, 4, (r, c)).astype(np.float32)
-        nn2 = rng.integers(0, 7, c).astype(np.float32)
-        qn = rng.integers(0, 7, r).astype(np.float32)
-    else:
-        dot = (rng.normal(size=(r, c)) * 10).astype(np.float32)
-        nn2 = rng.uniform(0, 50, c).astype(np.float32)
-        qn = rng.uniform(0, 50, r).astype(np.float32)
+    dot, nn2, qn = gemm_block(r, c, ties, seed)
     ref = np.maximum((qn[:, None] + nn2[None, :]) + dot * np.float32(-2.0), 0)   # faiss's order
     idx, dist = kernels.topk_gemm_serial(dot, nn2, qn, k)
     assert idx.shape == dist.shape == (r, k) and idx.dtype == np.int64 and dist.dtype == np.float32
