@@ -145,3 +145,63 @@ def test_importing_guidedmatch_first_keeps_zlib_usable_after_pycolmap(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().splitlines()[-1] == "None"
     assert (tmp_path / "x.png").stat().st_size > 0 and np.load(tmp_path / "x.npz")["a"].tolist() == [0, 1, 2]
+
+
+# --- faiss's bundled OpenBLAS: the CPU's kernels, chosen before faiss loads (_runtime.pin_faiss_blas) -------------
+
+_BLAS_PROBE = textwrap.dedent("""
+    import json, sys, warnings
+    first = sys.argv[1]
+    if first == "faiss":
+        import faiss
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        import guidedmatch
+    from guidedmatch import _runtime
+    import os
+    blas = _runtime.faiss_blas()
+    expected = _runtime.openblas_coretype(_runtime._cpu_flags(), os.uname().machine)
+    print(json.dumps(dict(blas=blas, expected=expected, env=os.environ.get("OPENBLAS_CORETYPE"),
+                          warned=[str(w.message) for w in caught if "OpenBLAS" in str(w.message)])))
+""")
+
+
+def _blas_probe(first: str = "guidedmatch", **env) -> dict:
+    import os
+
+    full = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_CORETYPE", "GUIDEDMATCH_FAISS_CORETYPE")}
+    full.update(env)
+    r = subprocess.run([sys.executable, "-c", _BLAS_PROBE, first], capture_output=True, text=True, timeout=300,
+                       env=full)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="OPENBLAS_CORETYPE is pinned on Linux only")
+def test_import_guidedmatch_pins_faiss_blas_to_the_cpus_kernels():
+    out = _blas_probe()
+    if out["expected"] is None:
+        pytest.skip("this CPU has no AVX2 + FMA: OpenBLAS's own choice is kept")
+    # faiss's OpenBLAS (0.3.15 in the 1.15.1 wheel) runs Prescott kernels on this project's AVX-512 Xeon by itself
+    assert out["blas"]["pinned"] == out["expected"] == out["env"]
+    assert str(out["blas"]["core"]).lower() == out["expected"].lower()
+    assert out["blas"]["generic"] is False and out["warned"] == []
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="OPENBLAS_CORETYPE is pinned on Linux only")
+def test_a_users_coretype_and_the_off_switch_are_respected():
+    kept = _blas_probe(OPENBLAS_CORETYPE="Sandybridge")
+    assert kept["env"] == "Sandybridge" and kept["blas"]["pinned"] is None
+    assert kept["blas"]["why"] == "OPENBLAS_CORETYPE was already set"
+    assert str(kept["blas"]["core"]).lower() == "sandybridge"
+    off = _blas_probe(GUIDEDMATCH_FAISS_CORETYPE="off")
+    assert off["env"] is None and off["blas"]["pinned"] is None and off["blas"]["why"] == "GUIDEDMATCH_FAISS_CORETYPE=off"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="OPENBLAS_CORETYPE is pinned on Linux only")
+def test_faiss_imported_first_warns_exactly_when_its_kernels_are_generic():
+    out = _blas_probe("faiss")
+    assert out["env"] is None and out["blas"]["why"] == "faiss was imported before guidedmatch"
+    assert bool(out["warned"]) == out["blas"]["generic"]
+    if out["warned"]:
+        assert out["blas"]["core"] in out["warned"][0]

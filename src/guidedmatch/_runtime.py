@@ -1,5 +1,6 @@
 """Process-level settings of the command line and of collection worker processes (never of a library call), and
-one process-level check that library calls use too (:func:`zlib_shadowed`: pycolmap's exported zlib).
+two process-level checks that library calls use too (:func:`zlib_shadowed`: pycolmap's exported zlib;
+:func:`faiss_blas`: the kernel of faiss's own OpenBLAS, chosen by :func:`pin_faiss_blas` at ``import guidedmatch``).
 
 >>> freeze_gc_at_exit(); freeze_gc_at_exit()   # registers once
 >>> len(_REGISTERED)
@@ -17,6 +18,14 @@ import threading
 _REGISTERED: list = []
 _OWN_PROCESS: list = []
 _ZLIB_VERDICT: list = []
+_FAISS_PIN: list = []  # what pin_faiss_blas did in this process: [(core or None, why)]
+
+#: CPU flags (``/proc/cpuinfo``) -> the OpenBLAS kernel family they allow, best first; names OpenBLAS 0.3.15 knows
+_OPENBLAS_CORES = (("SkylakeX", frozenset({"avx512f", "avx512dq", "avx512cd", "avx512bw", "avx512vl"})),
+                   ("Haswell", frozenset({"avx2", "fma"})))
+_GENERIC_CORES = frozenset({"prescott", "core2", "katmai", "coppermine", "northwood", "banias", "atom", "nehalem",
+                            "dunnington", "penryn", "opteron", "barcelona", "athlon", "sandybridge", "bulldozer",
+                            "piledriver", "steamroller", "excavator", "unknown"})
 
 
 def mark_own_process() -> None:
@@ -155,6 +164,83 @@ def zlib_shadowed() -> str | None:
                        "guidedmatch (or zlib, or numpy) before pycolmap")
     _ZLIB_VERDICT.append(verdict)
     return verdict
+
+
+def openblas_coretype(flags, machine: str) -> str | None:
+    """The OpenBLAS kernel family (an ``OPENBLAS_CORETYPE`` value) a CPU with these ``/proc/cpuinfo`` ``flags``
+    runs, or None (not x86-64, or no AVX2 + FMA: OpenBLAS's own choice is as good as ours).
+
+    >>> openblas_coretype("fpu sse2 avx avx2 fma avx512f avx512dq avx512cd avx512bw avx512vl".split(), "x86_64")
+    'SkylakeX'
+    >>> openblas_coretype({"avx2", "fma", "avx512f"}, "x86_64"), openblas_coretype({"avx2", "fma"}, "aarch64")
+    ('Haswell', None)
+    """
+    if str(machine).lower() not in ("x86_64", "amd64"):
+        return None
+    flags = set(flags)
+    return next((core for core, needs in _OPENBLAS_CORES if needs <= flags), None)
+
+
+def _cpu_flags() -> set[str]:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def pin_faiss_blas() -> str | None:
+    """Make faiss's bundled OpenBLAS run the kernels this CPU supports; ``import guidedmatch`` calls it. Returns the
+    ``OPENBLAS_CORETYPE`` it set, or None.
+
+    The faiss-cpu wheels (1.15.1 included) bundle OpenBLAS 0.3.15, which does not recognise recent server CPUs and
+    then falls back to its generic ``Prescott`` (SSE3) kernels: on this project's machine (an AVX-512 Xeon) every
+    faiss GEMM ran 3-4x slower than NumPy's -- k-means training plus adding 61.6k SIFT descriptors to an IVF index
+    0.86-1.1 -> 0.19 s, ``faiss.knn`` (61.6k x 496, k=1) 0.44 -> 0.08-0.11 s (docs/pairs.md). OpenBLAS reads
+    ``OPENBLAS_CORETYPE`` once, when its library loads, so this sets it (from ``/proc/cpuinfo``:
+    :func:`openblas_coretype`) before faiss is first imported. It changes nothing when faiss is already imported,
+    on other platforms, when the variable is already set (your choice is kept), or with
+    ``GUIDEDMATCH_FAISS_CORETYPE=off``; ``GUIDEDMATCH_FAISS_CORETYPE=NAME`` sets ``NAME`` instead. The variable stays
+    set for the process and the worker processes it starts; OpenBLAS libraries loaded later (NumPy's, if NumPy is
+    imported after guidedmatch) read it too, and the kernel family named is one the CPU runs. What happened is in
+    :func:`faiss_blas` and in every benchmark's metadata."""
+    if _FAISS_PIN:
+        return _FAISS_PIN[0][0]
+    setting = os.environ.get("GUIDEDMATCH_FAISS_CORETYPE", "auto").strip()
+    core, why = None, None
+    if "faiss" in sys.modules:
+        why = "faiss was imported before guidedmatch"
+    elif not sys.platform.startswith("linux"):
+        why = "not Linux"
+    elif os.environ.get("OPENBLAS_CORETYPE"):
+        why = "OPENBLAS_CORETYPE was already set"
+    elif setting.lower() == "off":
+        why = "GUIDEDMATCH_FAISS_CORETYPE=off"
+    else:
+        core = setting if setting.lower() != "auto" else openblas_coretype(_cpu_flags(), os.uname().machine)
+        why = "set by guidedmatch" if core else "no AVX2 + FMA: OpenBLAS's own choice kept"
+        if core:
+            os.environ["OPENBLAS_CORETYPE"] = core
+    _FAISS_PIN.append((core, why))
+    return core
+
+
+def faiss_blas() -> dict:
+    """The kernel family faiss's OpenBLAS runs in this process (imports faiss): ``{"core": name or None,
+    "pinned": what pin_faiss_blas set or None, "why": ..., "generic": bool}`` -- ``generic`` when it is a
+    pre-AVX2 fallback although the CPU allows better (:func:`pin_faiss_blas` could not apply)."""
+    import faiss  # noqa: F401 - its OpenBLAS must be loaded to be reported
+    from threadpoolctl import threadpool_info
+
+    core = next((lib.get("architecture") for lib in threadpool_info()
+                 if lib.get("internal_api") == "openblas" and "faiss" in str(lib.get("filepath", ""))), None)
+    pinned, why = _FAISS_PIN[0] if _FAISS_PIN else (None, "pin_faiss_blas not called")
+    better = openblas_coretype(_cpu_flags(), os.uname().machine) if hasattr(os, "uname") else None
+    generic = bool(core and better and core.lower() in _GENERIC_CORES)
+    return {"core": core, "pinned": pinned, "why": why, "generic": generic}
 
 
 def require_zlib(path) -> None:

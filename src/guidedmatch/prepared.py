@@ -17,8 +17,11 @@ pair with 4.5-4.8 % of the N1*N2 distance evaluations (coarse + fine) in 0.06-0.
 exact GEMM top-2 in 64-query batches (0.10-0.12 of it), its nearest neighbour agrees with the exact one on 98.8-100 %
 of the ratio-test matches, and it builds in 0.09-0.19 s; HNSW (M = 32, efSearch 32) needs 0.54-1.16 of the GEMM
 time and builds in 0.4-1.1 s, IVF with nprobe 8 (362 cells) 0.14-0.21. The coarse step of a search (which cells)
-is our own GEMM + fused top-k (:func:`guidedmatch.kernels.topk_gemm`, the same cells as faiss's flat quantizer at a
-third of its time); faiss then searches the chosen lists (``search_preassigned``).
+is NumPy's GEMM + our fused top-k (:func:`guidedmatch.kernels.topk_gemm`, the same cells as faiss's flat quantizer,
+as fast as faiss on the CPU's own BLAS kernels and 3x faster where faiss's bundled OpenBLAS falls back to generic ones:
+:func:`guidedmatch._runtime.pin_faiss_blas`); faiss then searches the chosen lists (``search_preassigned``). The
+index build (k-means + adding every descriptor) is faiss's GEMMs: 0.19 s for 61.6k SIFT on the CPU's kernels, 0.86-1.1
+s on the generic ones.
 
 Pickling drops the index (it is rebuilt on first use in the receiving process); everything else is plain arrays.
 """
@@ -206,9 +209,10 @@ class PreparedImage:
         # the calling thread's kernel thread count (1 in a collection's pair threads): a batch of >= 64 queries keeps
         # faiss's OpenMP team busy (Herz-Jesus ~40k unrelated pair: unguided start 0.6 -> 0.35 s on 2 cores)
         threads = kernels.num_threads() if len(q) >= 64 else 1
-        # the coarse step (nearest nprobe of nlist centroids) as one GEMM + a fused top-k per row instead of faiss's
-        # flat quantizer search, whose per-row heap selection cost 3x the GEMM: 68k queries vs 637 centroids 0.57-0.64
-        # -> 0.16-0.24 s (one thread), the same cells for every query (docs/pairs.md)
+        # the coarse step (nearest nprobe of nlist centroids) as NumPy's GEMM + a fused top-k per row, the same cells as
+        # faiss's flat quantizer: 68k queries vs 637 centroids 0.16-0.22 s, one thread. faiss took 0.57-0.64 s while
+        # its bundled OpenBLAS ran generic kernels (_runtime.pin_faiss_blas), 0.18-0.21 s on the CPU's own; ours does
+        # not depend on how faiss's BLAS was loaded (docs/pairs.md)
         Iq, Dq = kernels.topk_gemm(q, *self._centroids(), min(int(index.nprobe), self.nlist), threads)
         with _faiss_threads(threads):
             D, I = index.search_preassigned(q, 2, Iq, Dq)

@@ -71,7 +71,8 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
     versions ``python``, ``numpy``, ``scipy``, ``cv2``, ``numba``, ``faiss``, ``guidedmatch`` (None when
     not installed); ``cpu_model`` (``/proc/cpuinfo``), ``logical_cores`` (``os.cpu_count()``),
     ``usable_cores`` (CPU affinity); threads: ``numba_num_threads`` (``numba.get_num_threads()``),
-    ``cv2_num_threads``, ``faiss_omp_threads`` and the environment variables ``NUMBA_NUM_THREADS``,
+    ``cv2_num_threads``, ``faiss_omp_threads``, ``faiss_blas`` (the kernels of faiss's OpenBLAS:
+    ``_runtime.faiss_blas``) and the environment variables ``NUMBA_NUM_THREADS``,
     ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ... (None when unset);
     ``platform``, ``machine``, ``timestamp_utc`` (ISO 8601), ``seed``; ``load_average`` (1-minute load average when
     the run started, None where the OS has none: above ~1 on 2 cores, other jobs were running).
@@ -106,6 +107,12 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
         meta["faiss_omp_threads"] = int(faiss.omp_get_max_threads())
     except Exception:  # noqa: BLE001
         meta["faiss_omp_threads"] = None
+    try:
+        from .._runtime import faiss_blas
+
+        meta["faiss_blas"] = faiss_blas()
+    except Exception:  # noqa: BLE001
+        meta["faiss_blas"] = None
     for k in THREAD_ENV_VARS:
         meta[k] = os.environ.get(k)
     meta["platform"] = platform.platform()
