@@ -102,6 +102,7 @@ def test_run_metadata_keys():
         assert k in m
     assert m["seed"] == 11 and m["numpy"] == np.__version__ and m["logical_cores"] == os.cpu_count()
     assert m["timestamp_utc"].endswith("+00:00")
+    assert set(m["faiss_blas"]) == {"core", "pinned", "why", "generic"}  # which kernels faiss's OpenBLAS ran
     json.dumps(m)  # plain JSON types only
 
 
