@@ -138,6 +138,12 @@ def _blas_controller(load_scipy: bool = True):
     return _CONTROLLER[0]
 
 
+def blas_one_thread(load_scipy: bool = True):
+    """Limit the BLAS libraries loaded now (and SciPy's, with ``load_scipy``: :func:`_blas_controller`) to one thread;
+    a ``threadpoolctl`` limiter: a context manager, or ``restore_original_limits()`` to undo it."""
+    return _blas_controller(load_scipy).limit(limits=1, user_api="blas")
+
+
 class DenseKnn2:
     """Exact 2-NN of successive small query batches against one fixed float descriptor set (``(N2, D)``).
 
@@ -164,7 +170,7 @@ class DenseKnn2:
         self._limit = None
 
     def __enter__(self) -> "DenseKnn2":
-        self._limit = _blas_controller().limit(limits=1, user_api="blas")
+        self._limit = blas_one_thread()
         if len(self.chunks) > 1:
             self._pool = ThreadPoolExecutor(len(self.chunks), thread_name_prefix="guidedmatch-knn2")
         return self

@@ -662,12 +662,16 @@ def _chunked(fn, n: int, min_rows: int, threads: int | None = None):
     return [first] + [f.result() for f in futures]
 
 
-def _chunked_rows(fn, n: int, min_rows: int):
-    """:func:`_chunked` for a kernel returning a tuple of per-row arrays: the chunks' arrays joined in row order."""
-    parts = _chunked(fn, n, min_rows)
+def _join_rows(parts: list):
+    """Tuples of per-row arrays, one per chunk of rows, joined in row order (one chunk: returned as it is)."""
     if len(parts) == 1:
         return parts[0]
     return tuple(np.concatenate(arrays) for arrays in zip(*parts))
+
+
+def _chunked_rows(fn, n: int, min_rows: int, threads: int | None = None):
+    """:func:`_chunked` for a kernel returning a tuple of per-row arrays: the chunks' arrays joined in row order."""
+    return _join_rows(_chunked(fn, n, min_rows, threads))
 
 
 def top2_gemm(dot, nn2, qn, write_back):
@@ -689,12 +693,11 @@ def topk_gemm(q, centroids, cn, k, threads: int | None = None):
     cn = np.ascontiguousarray(cn, np.float32)
 
     def chunk(a, b):
-        parts = [topk_gemm_serial(q[s:min(s + _TOPK_BLOCK, b)] @ ct, cn, qn[s:min(s + _TOPK_BLOCK, b)], int(k))
-                 for s in range(a, b, _TOPK_BLOCK)] or [topk_gemm_serial(q[a:b] @ ct, cn, qn[a:b], int(k))]
-        return parts[0] if len(parts) == 1 else tuple(np.concatenate(x) for x in zip(*parts))
+        return _join_rows([topk_gemm_serial(q[s:min(s + _TOPK_BLOCK, b)] @ ct, cn, qn[s:min(s + _TOPK_BLOCK, b)],
+                                            int(k)) for s in range(a, b, _TOPK_BLOCK)]
+                          or [topk_gemm_serial(q[a:b] @ ct, cn, qn[a:b], int(k))])
 
-    parts = _chunked(chunk, len(q), 256, threads)
-    return parts[0] if len(parts) == 1 else tuple(np.concatenate(x) for x in zip(*parts))
+    return _chunked_rows(chunk, len(q), 256, threads)
 
 
 # rows per GEMM block of topk_gemm: its (rows, nlist) float32 distances stay in a core's L2 (1024 x 637 = 2.6 MB);

@@ -323,9 +323,9 @@ class UnguidedSearch:
             # the index's coarse GEMMs (search2) run one per kernel thread: BLAS single-threaded meanwhile, as in
             # DenseKnn2 (two collection threads' unrelated 68k pairs: 1.3-1.6 s with BLAS's own threads on top,
             # 0.84-0.95 s without; /tmp/s22/s2conc.py)
-            from .bruteforce import _blas_controller
+            from .bruteforce import blas_one_thread
 
-            self._blas = _blas_controller(load_scipy=False).limit(limits=1, user_api="blas")
+            self._blas = blas_one_thread(load_scipy=False)
         return self
 
     def __exit__(self, *exc) -> None:

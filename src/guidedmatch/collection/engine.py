@@ -772,11 +772,11 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
     # faiss and OpenCV single-threaded for the whole run: the concurrency is across pairs (and the per-search save /
     # set / restore of faiss's global thread count, prepared._faiss_threads, then only ever writes 1, so concurrent
     # searches cannot race on it)
-    from ..bruteforce import _blas_controller
+    from ..bruteforce import blas_one_thread
 
     # BLAS single-threaded for the whole run too (the IVF coarse GEMMs, prepared.PreparedImage.search2): per-search
     # limits set and restored by concurrent pair threads would race each other back to BLAS's own threads
-    with _faiss_threads(1), _opencv_threads(1), _blas_controller(load_scipy=False).limit(limits=1, user_api="blas"), \
+    with _faiss_threads(1), _opencv_threads(1), blas_one_thread(load_scipy=False), \
             cf.ThreadPoolExecutor(threads, thread_name_prefix="guidedmatch-pair") as pool:
         # one pool thread builds the indexes the first pairs will search (faiss releases the GIL) until a pair has
         # finished, the other sets Numba up (~0.13 s holding the GIL) before any pair needs it (module doc, "Start-up")
