@@ -53,7 +53,9 @@ def test_default_methods():
     assert "colmap_guided" in bench_sfm.default_methods("8192")
     assert "colmap_guided" not in bench_sfm.default_methods("50k")
     assert set(bench_sfm.method_names()) == {"colmap", "colmap_guided", "so+epi+ia+ours", "so+epi+ia+colmap",
-                                             "epi+ours", "epi+colmap"}
+                                             "epi+ours", "epi+colmap", "colmap+cap", "so+epi+ia+ours+cap"}
+    assert all(bench_sfm.is_known_method(m) for m in bench_sfm.method_names())
+    assert not any(bench_sfm.is_known_method(m) for m in ("cap", "colmap+capp", "fast+ours", "so+epi+ia+mine+cap"))
 
 
 def test_plot(tmp_path):
@@ -155,11 +157,14 @@ def test_colmap_baseline_on_rendered_scene(tmp_path):
     saved = json.loads((out / "sfm.json").read_text())
     assert saved["rows"][0]["verified_inliers"] == row["verified_inliers"] and "cpu_model" in saved["meta"]
     assert (out / "sfm.md").read_text().count("| colmap |") == 1 and (out / "sfm_time_vs_inliers.png").is_file()
-    res2 = bench_sfm.run(tmp_path / "scene", out, settings=("8192",), methods=["colmap_guided"], threads=2, e2e=False,
-                         merge=True)
+    res2 = bench_sfm.run(tmp_path / "scene", out, settings=("8192",), methods=["colmap_guided", "colmap+cap"],
+                         threads=2, e2e=False, merge=True)
     assert res2["extraction"]["8192"]["cached"] is True
-    assert [r["method"] for r in res2["rows"]] == ["colmap", "colmap_guided"]
+    assert [r["method"] for r in res2["rows"]] == ["colmap", "colmap_guided", "colmap+cap"]
     assert res2["rows"][0]["timestamp_utc"] == row["timestamp_utc"]
+    capped = res2["rows"][2]   # COLMAP's matches, then at most 1000 inliers per pair (none of these pairs has more)
+    assert capped["inlier_cap"]["max_inliers"] == 1000 and capped["inlier_cap"]["pairs_capped"] == 0
+    assert capped["verified_inliers"] == capped["inlier_cap"]["inliers_after"] == capped["inlier_cap"]["inliers_before"]
 
 
 def test_end_to_end_repeats_alternate_the_order_and_report_medians(monkeypatch, tmp_path):

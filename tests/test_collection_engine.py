@@ -644,6 +644,7 @@ def test_cli_refuses_a_second_writer_and_bad_inputs_with_one_line(rendered_db, t
     one_line_error(run_cli("colmap", db, "--config", "band_px=-1"), "band_px")
     one_line_error(run_cli("colmap", db, "--timeline", tmp_path / "t.jpg"), "--timeline", "PNG")
     one_line_error(run_cli("colmap", db, "--timeline", "/proc/nope/t.png"), "--timeline", "/proc/nope")
+    one_line_error(run_cli("colmap", db, "--max-inliers-per-pair", "-1"), "--max-inliers-per-pair")
     with ColmapSink(db):  # another writer holds the database
         one_line_error(run_cli("colmap", db, "--workers", "0"), "being written by another process")
     assert db_rows(db) == {}
@@ -768,3 +769,30 @@ def test_cli_scheduler_address_attaches_to_a_running_cluster(rendered_db, cluste
     assert db_rows(a) == db_rows(b)
     r = run_cli("colmap", a, "--scheduler", "tcp://127.0.0.1:9", "--log", "none", "--no-progress")  # nobody listens
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "cannot connect" in r.stderr, r.stderr
+
+
+def test_cli_max_inliers_per_pair_caps_the_mappers_inliers(rendered_db, tmp_path):
+    """--max-inliers-per-pair K: every geometry keeps at most K inliers (the raw matches all of theirs), the summary
+    says how many were kept, and the mapper still registers every view that overlaps another."""
+    import shutil
+
+    import pycolmap
+
+    root, mv = rendered_db
+    full, capped = tmp_path / "full.db", tmp_path / "capped.db"
+    shutil.copy(root / "fresh.db", full)
+    shutil.copy(root / "fresh.db", capped)
+    assert run_cli("colmap", full, "--workers", "0", "--no-progress").returncode == 0
+    r = run_cli("colmap", capped, "--workers", "0", "--no-progress", "--max-inliers-per-pair", "130")
+    assert r.returncode == 0, r.stderr
+    assert "inliers kept (at most 130 per pair" in r.stdout, r.stdout
+    a, b = db_rows(full), db_rows(capped)
+    assert a.keys() == b.keys()
+    assert any(len(g[1]) > 130 for _, g in a.values())            # the cap had something to do
+    for key, (m, g) in b.items():
+        assert m == a[key][0]                                    # raw matches untouched
+        assert len(g[1]) == min(130, len(a[key][1][1])) and set(map(tuple, g[1])) <= set(map(tuple, a[key][1][1]))
+    recs = pycolmap.incremental_mapping(capped, root / "img", tmp_path / "sparse")
+    registered = {im.name for im in max(recs.values(), key=lambda x: x.num_reg_images()).images.values()
+                  if im.has_pose}
+    assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}

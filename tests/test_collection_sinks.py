@@ -522,3 +522,91 @@ def test_h5_rows_property(tmp_path_factory, n1, n2, frac, seed):
     got, gs, dtype, length = _hloc_get_matches(path, "x/1.jpg", "y.jpg")
     assert length == n1 and dtype == np.int32
     assert np.array_equal(got, p) and np.array_equal(gs, s)
+
+
+# --------------------------------------------------------------------------- capping the mapper's inliers
+def _geometry_rows(path):
+    db = pycolmap.Database.open(str(path))
+    try:
+        out = {}
+        for pid in db.read_two_view_geometry_num_inliers()[0]:
+            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+            g = db.read_two_view_geometry(i1, i2)
+            out[(i1, i2)] = (int(g.config), np.array(g.F), np.asarray(g.inlier_matches).copy(),
+                             np.asarray(db.read_matches(i1, i2)).copy())
+        return out
+    finally:
+        db.close()
+
+
+def _cap_reference(path, i1, i2, inliers, k, grid=16):
+    """The kept inliers computed independently: raw COLMAP keypoints and uint8 descriptors straight from the
+    database, L2 (SIFT) or Hamming (binary) distances, then the rounds of the reference above."""
+    from tests.test_geometry import _spread_reference
+
+    db = pycolmap.Database.open(str(path))
+    try:
+        kp1 = np.asarray(db.read_keypoints(i1))[:, :2]
+        d1, d2 = (np.asarray(db.read_descriptors(i).data) for i in (i1, i2))
+        cam = db.read_camera(db.read_image(i1).camera_id)
+        binary = db.read_descriptors(i1).type.name != "SIFT"
+    finally:
+        db.close()
+    a, b = d1[inliers[:, 0]], d2[inliers[:, 1]]
+    if binary:
+        dist = np.array([bin(int.from_bytes((x ^ y).tobytes(), "big")).count("1") for x, y in zip(a, b)], float)
+    else:
+        dist = np.sqrt(((a.astype(np.float64) - b.astype(np.float64)) ** 2).sum(1))
+    keep = _spread_reference(kp1[inliers[:, 0]], (cam.width, cam.height), dist, k, grid)
+    return inliers[np.sort(keep)]
+
+
+@pytest.mark.parametrize("detector", ["sift", "orb"])
+def test_cap_inliers_keeps_a_spread_best_first_subset(tmp_path, detector):
+    """Pairs above the cap keep exactly the reference's inliers (a subset of theirs; config, F and the raw matches
+    unchanged); pairs at or below it are untouched; a second pass changes nothing."""
+    from guidedmatch.collection.sinks import cap_two_view_inliers
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(3, (320, 240), seed=5, isolated=False)
+    write_views(mv, tmp_path / "img")
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", detector=detector, max_features=800,
+                             progress=False)
+    with ColmapSink(tmp_path / "db.db") as sink:
+        for a, b in ((0, 1), (0, 2), (1, 2)):
+            fa, fb = src.load(mv.names[a]), src.load(mv.names[b])
+            r = match(fa, fb)
+            sink.write(mv.names[a], mv.names[b], r.pairs, r.distances, r.geometry)
+    src.close()
+    before = _geometry_rows(tmp_path / "db.db")
+    counts = sorted(len(v[2]) for v in before.values())
+    assert counts[0] > 20, counts
+    k = counts[-1] - max(1, (counts[-1] - counts[0]) // 2)   # pairs above the cap (and, unless all are equal, below)
+    rep = cap_two_view_inliers(tmp_path / "db.db", k)
+    after = _geometry_rows(tmp_path / "db.db")
+    assert rep["pairs_capped"] == sum(c > k for c in counts) >= 1
+    assert rep["inliers_before"] == sum(counts) and rep["inliers_after"] == sum(min(c, k) for c in counts)
+    for key, (config, F, inl, raw) in before.items():
+        c2, F2, inl2, raw2 = after[key]
+        assert c2 == config and np.allclose(F2, F) and np.array_equal(raw2, raw)
+        if len(inl) <= k:
+            assert np.array_equal(inl2, inl)
+        else:
+            assert len(inl2) == k
+            assert np.array_equal(inl2, _cap_reference(tmp_path / "db.db", *key, inl, k))
+    assert cap_two_view_inliers(tmp_path / "db.db", k)["pairs_capped"] == 0
+    assert all(np.array_equal(after[key][2], v[2]) for key, v in _geometry_rows(tmp_path / "db.db").items())
+
+
+def test_cap_inliers_bad_input_and_lock(db_copy):
+    from guidedmatch.collection.sinks import cap_two_view_inliers
+
+    with pytest.raises(ConfigError):
+        cap_two_view_inliers(db_copy, 0)
+    with ColmapSink(db_copy):
+        with pytest.raises(DatabaseBusyError):
+            cap_two_view_inliers(db_copy, 10)
+    sink = ColmapSink(db_copy)
+    sink.close()
+    with pytest.raises(OutputError):
+        sink.cap_inliers(10)

@@ -334,3 +334,65 @@ def test_distinct_cells_equals_rowwise_unique(pts, q):
 
     ref = len(np.unique(np.round(pts / q), axis=0)) if len(pts) else 0
     assert _distinct_cells(pts, q) == ref
+
+
+# --------------------------------------------------------------------------- spread_matches (the mapper's inliers)
+def _spread_reference(xy, size, scores, k, grid):
+    """Obviously-correct rounds: each cell's matches sorted by (score, index); round r takes the r-th of every cell
+    that has one, in (score, index) order; stop at k."""
+    from collections import defaultdict
+
+    w, h = size
+    cells = defaultdict(list)
+    for i, ((x, y), s) in enumerate(zip(xy, scores)):
+        cx = min(max(int(np.floor(x / w * grid)), 0), grid - 1) if np.isfinite(x) else 0
+        cy = min(max(int(np.floor(y / h * grid)), 0), grid - 1) if np.isfinite(y) else 0
+        cells[(cy, cx)].append((np.inf if np.isnan(s) else s, i))
+    for v in cells.values():
+        v.sort()
+    out, r = [], 0
+    while len(out) < min(k, len(xy)):
+        out += [i for _, i in sorted(v[r] for v in cells.values() if len(v) > r)]
+        r += 1
+    return out[:k]
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data(), m=st.integers(0, 120), k=st.integers(0, 130), grid=st.integers(1, 7))
+def test_spread_matches_equals_reference(data, m, k, grid):
+    from guidedmatch.geometry import spread_matches
+
+    w, h = data.draw(st.sampled_from([(100, 80), (64, 64), (3072, 2048)]))
+    xy = data.draw(arrays(np.float64, (m, 2), elements=st.floats(-10, 3100, allow_nan=False)))
+    # few distinct scores: ties must be broken by index, like the reference
+    scores = data.draw(arrays(np.float64, (m,), elements=st.sampled_from([0.0, 0.5, 1.0, 2.0, np.nan])))
+    got = spread_matches(xy, (w, h), scores, k, grid=grid)
+    assert got.tolist() == _spread_reference(xy, (w, h), scores, k, grid)
+    assert len(set(got.tolist())) == len(got) == min(k, m)
+
+
+def test_spread_matches_covers_every_cell_before_repeating_one():
+    """A cluster of good matches in one corner does not crowd out the rest of the image."""
+    from guidedmatch.geometry import spread_matches
+
+    rng = np.random.default_rng(0)
+    corner = rng.uniform(0, 10, (500, 2))                  # 500 very good matches in one cell
+    rest = rng.uniform(0, 100, (100, 2))
+    xy = np.vstack([corner, rest])
+    scores = np.r_[np.zeros(500), np.ones(100)]
+    keep = spread_matches(xy, (100, 100), scores, 60, grid=4)
+    cells = lambda p: set(map(tuple, np.floor(p / 25).astype(int)))  # noqa: E731
+    assert cells(xy[keep]) == cells(xy)                     # every occupied cell is represented
+    assert (keep < 500).sum() <= 60 // 4 + 4                # the corner gets about its share, not all 60
+
+
+def test_spread_matches_bad_input():
+    from guidedmatch.errors import ConfigError, InputError
+    from guidedmatch.geometry import spread_matches
+
+    with pytest.raises(InputError):
+        spread_matches(np.zeros((3, 2)), (10, 10), np.zeros(2), 1)
+    with pytest.raises(ConfigError):
+        spread_matches(np.zeros((3, 2)), (10, 10), np.zeros(3), -1)
+    with pytest.raises(ConfigError):
+        spread_matches(np.zeros((3, 2)), (10, 10), np.zeros(3), 1, grid=0)

@@ -95,7 +95,8 @@ def test_project_of_another_folder_refused(tmp_path):
                                 dict(camera="PINHOLE:1,2,3"), dict(camera="FISHEYE:1,2,3,4"),
                                 dict(camera="PINHOLE:-1,1,1,1"), dict(geometry="both"), dict(mode="fast"),
                                 dict(num_threads=0), dict(peak_threshold=0.002, detector="ours:sift"),
-                                dict(matcher={"no_such_field": 1}), dict(pairs="")])
+                                dict(matcher={"no_such_field": 1}), dict(pairs=""),
+                                dict(max_inliers_per_pair=-1), dict(max_inliers_per_pair=99)])
 def test_config_errors(kw):
     with pytest.raises(ConfigError):
         SfmConfig(**kw)
@@ -202,6 +203,7 @@ def test_sfm_end_to_end_and_resume(rendered, tmp_path):
     assert rep["stages"]["extraction"]["extracted"] == 5
     assert rep["stages"]["matching"]["collection"]["done"] == 10
     assert rep["stages"]["mapping"]["models"][0]["mean_reprojection_error_px"] < 1.0
+    assert rep["stages"]["matching"]["inlier_cap"]["max_inliers"] == 1000    # the default
     assert "zz_broken.png" in (out / "report.md").read_text()
 
     gt = {n: CameraPose(R, t) for n, R, t in zip(scene.names, scene.R, scene.t)}
@@ -238,12 +240,18 @@ def test_sfm_colmap_verification_single_camera(rendered, tmp_path):
     scene, folder = rendered
     out = tmp_path / "proj"
     proc = run_cli("sfm", folder, out, "--detector", "ours:sift", "--single-camera", "--geometry", "colmap",
-                   "--threads", "2", "--workers", "0", "--quiet")
+                   "--threads", "2", "--workers", "0", "--quiet", "--max-inliers-per-pair", "200")
     assert proc.returncode == 0, proc.stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["registered"] == 5
     assert rep["stages"]["matching"]["verified_pairs"] >= 8
     assert rep["stages"]["matching"]["verify_time_s"] > 0
+    # the cap applies to COLMAP's verification too: no pair hands the mapper more than 200 inliers
+    cap = rep["stages"]["matching"]["inlier_cap"]
+    assert cap["max_inliers"] == 200 and cap["pairs_capped"] >= 1 and cap["inliers_after"] < cap["inliers_before"]
+    assert max(p["inliers"] for p in rep["pairs"]) == 200
+    assert rep["stages"]["matching"]["verified_inliers"] == cap["inliers_after"]
+    assert "the mapper gets at most 200 per pair" in (out / "report.md").read_text()
 
 
 def test_mapper_profile_tool_reads_colmaps_log(rendered, tmp_path):

@@ -64,7 +64,7 @@ import numpy as np
 from .epipolar import estimate_fundamental, sampson_distance
 
 __all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "report_geometry",
-           "random_inlier_bound", "COLMAP_CONFIG", "consistent_frames", "fundamental_support"]
+           "random_inlier_bound", "COLMAP_CONFIG", "consistent_frames", "fundamental_support", "spread_matches"]
 
 #: verdict -> meaning.
 VERDICTS = {
@@ -459,3 +459,50 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
                            f"no model beyond chance: best F {nf} / H {nh} inliers of {m} correspondences, "
                            f"random correspondences reach {bound_f:.0f} (F) / {bound_h:.0f} (H), "
                            f"at least {c.min_inliers} needed", ev)
+
+
+def spread_matches(xy, image_size, scores, k: int, grid: int = 16) -> np.ndarray:
+    """Indices of at most ``k`` matches spread evenly over the image, the best-scored first in every part of it.
+
+    The image (``image_size = (w, h)``, ``xy (M, 2)`` pixel positions of the matches in it) is cut into a ``grid x
+    grid`` lattice; the matches are taken in rounds, one per non-empty cell in each round (the lowest ``scores``
+    -- descriptor distances -- of the cell first), the picks of a round in order of score, until ``k`` are taken.
+    All ``M`` are returned (in that order) when ``M <= k``. Ties are broken by index, so the result is
+    deterministic. O(M log M).
+
+    What it is for: the verified inliers a COLMAP mapper gets (:meth:`guidedmatch.collection.ColmapSink.cap_inliers`,
+    ``guidedmatch sfm --max-inliers-per-pair``). The mapper's bundle adjustments cost what its observations cost, and
+    a pair with thousands of inliers adds little to a pose that a well spread thousand of its best matches do not
+    already fix (docs/collections.md, "How many inliers the mapper needs").
+
+    >>> xy = np.array([[10., 10.], [12., 11.], [90., 90.], [11., 12.]])
+    >>> spread_matches(xy, (100, 100), np.array([0.3, 0.1, 0.5, 0.2]), 2, grid=2).tolist()  # one per cell first
+    [1, 2]
+    >>> spread_matches(xy, (100, 100), np.array([0.3, 0.1, 0.5, 0.2]), 10, grid=2).tolist()
+    [1, 2, 3, 0]
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if len(scores) != len(xy):
+        from .errors import InputError
+
+        raise InputError(f"spread_matches: {len(xy)} positions but {len(scores)} scores")
+    if int(k) < 0 or int(grid) < 1:
+        from .errors import ConfigError
+
+        raise ConfigError(f"spread_matches: k must be >= 0 and grid >= 1; got k={k}, grid={grid}")
+    w, h = (float(v) for v in image_size)
+    m = len(xy)
+    if m == 0 or k == 0:
+        return np.zeros(0, dtype=np.int64)
+    with np.errstate(invalid="ignore"):
+        cx = np.clip(np.nan_to_num(xy[:, 0] / w * grid), 0, grid - 1).astype(np.int64)
+        cy = np.clip(np.nan_to_num(xy[:, 1] / h * grid), 0, grid - 1).astype(np.int64)
+    cell = cy * grid + cx
+    s = np.nan_to_num(scores, nan=np.inf)
+    order = np.lexsort((np.arange(m), s, cell))           # by cell, then score, then index
+    c_sorted = cell[order]
+    starts = np.flatnonzero(np.r_[True, c_sorted[1:] != c_sorted[:-1]])
+    rank = np.arange(m) - np.repeat(starts, np.diff(np.r_[starts, m]))  # position within its cell
+    pick = order[np.lexsort((order, s[order], rank))]   # rounds, then score, then index
+    return pick[: int(k)].astype(np.int64)

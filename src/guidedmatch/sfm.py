@@ -8,8 +8,10 @@ Three resumable stages in the style of hloc (each a ``main(conf, paths)`` that r
    Images already in the database with keypoints are not extracted again.
 2. **matching** (:func:`match_main`): :func:`guidedmatch.collection.engine.match_collection` over the pair list
    (exhaustive by default, ``sequential[:K]`` or a pairs file), writing matches and two-view geometries into the
-   database (``geometry="ours"``: the matcher's own verdict; ``"colmap"``: pycolmap's verification afterwards).
-   Pairs already complete in the database are skipped.
+   database (``geometry="ours"``: the matcher's own verdict; ``"colmap"``: pycolmap's verification afterwards),
+   then at most ``max_inliers_per_pair`` inliers of each pair are kept for the mapper (spread over the image, best
+   first: :meth:`guidedmatch.collection.ColmapSink.cap_inliers`; ``0`` keeps all). Pairs already complete in the
+   database are skipped.
 3. **mapping** (:func:`map_main`): ``pycolmap.incremental_mapping`` into ``OUT_DIR/sparse/<k>/`` (always redone;
    written to a temporary folder and moved into place when complete).
 
@@ -56,6 +58,8 @@ COLMAP_MAX_IMAGE_SIZE = 3200
 OUR_DETECTORS = ("sift", "orb", "akaze", "brisk")
 #: Camera models accepted by ``camera=`` and their parameter counts (COLMAP's names and parameter order).
 CAMERA_MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
+#: COLMAP's ``IncrementalMapperOptions.init_min_num_inliers``: fewer inliers per pair and the mapper cannot start.
+MIN_MAPPER_INLIERS = 100
 #: Two-view geometry configurations the mapper uses (COLMAP ``TwoViewGeometry::ConfigurationType``).
 VERIFIED_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC", "MULTIPLE")
 
@@ -101,6 +105,7 @@ class SfmConfig:
     mode: str = "so+epi+ia"            # matcher mode (guidedmatch.matcher.match)
     matcher: dict | None = None        # MatcherConfig overrides, e.g. {"alignment": "c_inplane"}
     geometry: str = "ours"             # two-view geometry: "ours" (matcher's verdict written) | "colmap" (pycolmap verifies)
+    max_inliers_per_pair: int = 1000   # inliers per pair handed to the mapper (spread over the image, best first); 0 = all
     workers: int | None = None         # matching worker processes; None = automatic, 0 = in this process (collection engine)
     scheduler: str | None = None       # address of a running Dask scheduler for matching
     num_threads: int = -1              # COLMAP extraction / verification / mapping threads; -1 = all cores
@@ -131,6 +136,11 @@ class SfmConfig:
 
             config_from(MatcherConfig, self.matcher)
         check_choice(o, "geometry", self.geometry, ("ours", "colmap"))
+        check_number(o, "max_inliers_per_pair", self.max_inliers_per_pair, lo=0, integer=True)
+        if 0 < self.max_inliers_per_pair < MIN_MAPPER_INLIERS:
+            raise ConfigError(f"{o}.max_inliers_per_pair must be 0 (all) or >= {MIN_MAPPER_INLIERS}: COLMAP's mapper "
+                              f"needs {MIN_MAPPER_INLIERS} inliers in its initial pair (init_min_num_inliers); got "
+                              f"{self.max_inliers_per_pair}")
         check_number(o, "workers", self.workers, lo=0, integer=True, allow_none=True)
         check_number(o, "num_threads", self.num_threads, lo=-1, integer=True)
         if self.num_threads == 0:
@@ -145,7 +155,8 @@ class SfmConfig:
 
     def matching_settings(self) -> dict:
         """What determines the matched pairs (a rerun with other values is refused while pairs exist)."""
-        return {"mode": self.mode, "matcher": dict(self.matcher or {}), "geometry": self.geometry}
+        return {"mode": self.mode, "matcher": dict(self.matcher or {}), "geometry": self.geometry,
+                "max_inliers_per_pair": self.max_inliers_per_pair}
 
 
 @dataclass(frozen=True)
@@ -308,7 +319,9 @@ def check_output(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
         if in_db and old.get("extraction") != project["extraction"]:
             raise OutputError(f"the features in {paths.database} were extracted with {old.get('extraction')}, not "
                               f"{project['extraction']}; rerun with the same options or use a new OUT_DIR")
-        if _num_matched_pairs(paths.database) and old.get("matching") != project["matching"]:
+        # projects from before max_inliers_per_pair handed the mapper every inlier: they read as 0
+        old_matching = {"max_inliers_per_pair": 0, **old["matching"]} if isinstance(old.get("matching"), dict) else None
+        if _num_matched_pairs(paths.database) and old_matching != project["matching"]:
             raise OutputError(f"the pairs in {paths.database} were matched with {old.get('matching')}, not "
                               f"{project['matching']}; rerun with the same options or use a new OUT_DIR")
     return project
@@ -451,10 +464,17 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
                 t1 = time.perf_counter()
                 sink.verify(pycolmap.TwoViewGeometryOptions())   # COLMAP's default verification
                 t_verify = time.perf_counter() - t1
+            # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
+            # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
+            cap = sink.cap_inliers(conf.max_inliers_per_pair) if conf.max_inliers_per_pair else None
     finally:
         source.close()
     pairs = database_pair_stats(paths.database)
+    if cap is not None:
+        _say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
+                   f"{cap['max_inliers']} per pair; {cap['pairs_capped']} pairs capped)")
     return {"time_s": time.perf_counter() - t0, "match_time_s": t_match, "verify_time_s": t_verify,
+            "inlier_cap": cap,
             "pairs": len(pair_list.pairs), "pair_list_report": pair_list.report, "collection": report.to_dict(),
             "verified_pairs": sum(p["verified"] for p in pairs), "verified_inliers": sum(p["inliers"] for p in pairs),
             "raw_matches": sum(p["matches"] for p in pairs)}
@@ -629,6 +649,8 @@ def report_markdown(report: dict) -> str:
                  f"{len(coll['failed'])} failed; "
                  f"{ma['verified_pairs']} verified pairs, {ma['verified_inliers']:,} inlier matches"
                  + (f" (COLMAP verification {_fmt_s(ma['verify_time_s'])} s)" if report['config']['geometry'] == 'colmap' else "")
+                 + (f"; the mapper gets at most {ic['max_inliers']} per pair ({ic['pairs_capped']} pairs capped "
+                    f"this run: {ic['inliers_before']:,} -> {ic['inliers_after']:,})" if (ic := ma.get("inlier_cap")) else "")
                  + " |")
     mp = st["mapping"]
     best = mp["models"][mp["best"]] if mp.get("best") is not None else None

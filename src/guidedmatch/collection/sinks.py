@@ -25,7 +25,8 @@ import numpy as np
 
 from ..errors import ConfigError, DatabaseBusyError, DatabaseError, InputError, OutputError
 
-__all__ = ["MatchSink", "ColmapSink", "H5MatchesSink", "names_to_pair", "WriteLock", "colmap_pixel_geometry"]
+__all__ = ["MatchSink", "ColmapSink", "H5MatchesSink", "names_to_pair", "WriteLock", "colmap_pixel_geometry",
+           "cap_two_view_inliers"]
 
 _T = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # x_cv = T x_colmap
 _T_INV = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
@@ -368,6 +369,78 @@ class ColmapSink(MatchSink):
                 self._db = _open_colmap(self.path)
         return len(todo)
 
+    def cap_inliers(self, max_inliers: int, *, grid: int = 16) -> dict:
+        """Keep at most ``max_inliers`` inlier matches in every two-view geometry of the database, spread over
+        image 1 and best first (:func:`guidedmatch.geometry.spread_matches`: a ``grid x grid`` lattice, the
+        smallest descriptor distance of each cell first, round after round).
+
+        Only the geometry rows change (their configuration, F / E / H and pose are kept); the raw ``matches`` rows
+        keep every match. Pairs with at most ``max_inliers`` inliers are not touched, so weak links of the view
+        graph stay whole and a rerun with the same value changes nothing (each pair is rewritten in its own
+        transaction: an interrupted pass leaves every pair either capped or as it was, and the rerun completes it).
+        Works on any COLMAP database: our geometries or COLMAP's own verification.
+
+        Why: the mapper's bundle adjustments cost what its observations cost (docs/collections.md, "How many inliers
+        the mapper needs"). Returns ``{"max_inliers", "grid", "pairs", "pairs_capped", "inliers_before",
+        "inliers_after", "time_s"}`` (``pairs`` = geometries with inliers).
+        """
+        import pycolmap
+
+        from ..features import BINARY_KINDS
+        from ..geometry import spread_matches
+        from ..validation import check_number
+        from .sources import _descriptor_kind
+
+        check_number("cap_inliers", "max_inliers", max_inliers, lo=1, integer=True)
+        check_number("cap_inliers", "grid", grid, lo=1, integer=True)
+        if self._db is None:
+            raise OutputError(f"ColmapSink({self.path}) is closed")
+        t0 = time.perf_counter()
+        db = self._db
+        pids, counts = (np.asarray(a, dtype=np.int64) for a in db.read_two_view_geometry_num_inliers())
+        report = {"max_inliers": int(max_inliers), "grid": int(grid), "pairs": int(np.count_nonzero(counts)),
+                  "pairs_capped": 0, "inliers_before": int(counts.sum()), "inliers_after": int(counts.sum())}
+        big = np.sort(pids[counts > max_inliers])
+        cache: dict[int, tuple] = {}
+        cache_bytes = 256 << 20
+
+        def load(iid: int):
+            """(keypoints x, y, raw descriptor rows, binary?, image size): no float copy of the descriptors -- only
+            the inlier rows are compared. Raw rows are ~150 B per SIFT feature: 256 MB hold ~200 images of 8192."""
+            if iid not in cache:
+                while cache and sum(c[1].nbytes + c[0].nbytes for c in cache.values()) > cache_bytes:
+                    cache.pop(next(iter(cache)))   # oldest first
+                desc = db.read_descriptors(iid)
+                data = np.asarray(desc.data)
+                kind = _descriptor_kind(desc.type, int(data.shape[1]) if data.ndim == 2 else 0)
+                if kind not in ("sift", "binary", *BINARY_KINDS):
+                    data = np.asarray(desc.to_float().data, dtype=np.float32)
+                cam = db.read_camera(db.read_image(iid).camera_id)
+                cache[iid] = (np.asarray(db.read_keypoints(iid))[:, :2], data, kind != "sift" and data.dtype == np.uint8,
+                              (int(cam.width), int(cam.height)))
+            return cache[iid]
+
+        for pid in big:
+            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+            g = db.read_two_view_geometry(i1, i2)
+            m = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)
+            if len(m) <= max_inliers:
+                continue
+            (kp1, d1, binary, size1), (_, d2, _, _) = load(int(i1)), load(int(i2))
+            a, b = d1[m[:, 0]], d2[m[:, 1]]
+            if binary:   # packed bits: Hamming
+                dist = np.unpackbits(np.bitwise_xor(a, b), axis=1).sum(axis=1).astype(np.float64)
+            else:
+                dist = np.linalg.norm(a.astype(np.float32) - b.astype(np.float32), axis=1)
+            keep = np.sort(spread_matches(kp1[m[:, 0]], size1, dist, max_inliers, grid))
+            g.inlier_matches = np.ascontiguousarray(m[keep], dtype=np.uint32)
+            with pycolmap.DatabaseTransaction(db):
+                db.update_two_view_geometry(i1, i2, g)
+            report["pairs_capped"] += 1
+            report["inliers_after"] -= len(m) - len(keep)
+        report["time_s"] = time.perf_counter() - t0
+        return report
+
     def close(self) -> None:
         db, self._db = self._db, None
         if db is not None:
@@ -381,6 +454,19 @@ class ColmapSink(MatchSink):
             self.close()
         except Exception:
             pass
+
+
+def cap_two_view_inliers(database_path: str | os.PathLike, max_inliers: int, *, grid: int = 16) -> dict:
+    """:meth:`ColmapSink.cap_inliers` on a COLMAP database (under the sink's write lock), e.g. after
+    ``colmap exhaustive_matcher``: every two-view geometry keeps at most ``max_inliers`` spread, best-first inliers.
+
+    >>> cap_two_view_inliers("missing.db", 1000)
+    Traceback (most recent call last):
+    ...
+    guidedmatch.errors.DatabaseError: COLMAP database not found: missing.db
+    """
+    with ColmapSink(database_path, geometry="none") as sink:
+        return sink.cap_inliers(max_inliers, grid=grid)
 
 
 # ====================================================================== hloc
