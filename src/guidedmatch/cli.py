@@ -654,7 +654,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scene", default=None, help="sfm: scene folder with images/ and gt_dense_cameras/ (Strecha "
                    "layout; default: Herz-Jesus-P8 in the data folder)")
     b.add_argument("--methods", default=None, help="sfm: comma-separated subset of colmap, colmap_guided, "
-                   "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap")
+                   "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap, colmap+cap, so+epi+ia+ours+cap (+cap: at "
+                   "most 1000 inliers per pair to the mapper, as guidedmatch sfm does)")
     b.add_argument("--threads", type=_positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
     b.add_argument("--work", default=None, help="sfm: folder for the databases and models (default OUT/work; "
                    "extracted features are reused by a rerun)")
