@@ -32,10 +32,11 @@ _EXPORTS = {
     "fit_spatial_order": "spatial_order", "SpatialOrderConfig": "spatial_order",
     "align_from_fundamental": "alignment", "check_alignment": "alignment", "safe_alignment": "alignment",
     "two_view_geometry": "geometry", "TwoViewGeometry": "geometry", "VerdictConfig": "geometry",
+    "spread_matches": "geometry",
     # collections (COLMAP / hloc)
     "open_source": "collection", "images_to_database": "collection", "exhaustive_pairs": "collection",
     "sequential_pairs": "collection", "pairs_from_spec": "collection", "ColmapSink": "collection",
-    "H5MatchesSink": "collection",
+    "H5MatchesSink": "collection", "cap_two_view_inliers": "collection",
     "match_collection": "collection.engine", "CollectionConfig": "collection.engine",
     "CollectionReport": "collection.engine",
     # errors
