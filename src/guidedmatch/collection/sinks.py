@@ -386,10 +386,9 @@ class ColmapSink(MatchSink):
         """
         import pycolmap
 
-        from ..features import BINARY_KINDS
         from ..geometry import spread_matches
         from ..validation import check_number
-        from .sources import _descriptor_kind
+        from .sources import _descriptor_rows, _is_binary
 
         check_number("cap_inliers", "max_inliers", max_inliers, lo=1, integer=True)
         check_number("cap_inliers", "grid", grid, lo=1, integer=True)
@@ -411,12 +410,10 @@ class ColmapSink(MatchSink):
                 while cache and sum(c[1].nbytes + c[0].nbytes for c in cache.values()) > cache_bytes:
                     cache.pop(next(iter(cache)))   # oldest first
                 desc = db.read_descriptors(iid)
-                data = np.asarray(desc.data)
-                kind = _descriptor_kind(desc.type, int(data.shape[1]) if data.ndim == 2 else 0)
-                if kind not in ("sift", "binary", *BINARY_KINDS):
-                    data = np.asarray(desc.to_float().data, dtype=np.float32)
+                shape = np.shape(desc.data)
+                kind, rows = _descriptor_rows(desc, int(shape[1]) if len(shape) == 2 else 0)
                 cam = db.read_camera(db.read_image(iid).camera_id)
-                cache[iid] = (np.asarray(db.read_keypoints(iid))[:, :2], data, kind != "sift" and data.dtype == np.uint8,
+                cache[iid] = (np.asarray(db.read_keypoints(iid))[:, :2], rows, _is_binary(kind),
                               (int(cam.width), int(cam.height)))
             return cache[iid]
 

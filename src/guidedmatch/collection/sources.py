@@ -196,6 +196,20 @@ def _descriptor_kind(ftype, nbytes: int) -> str:
     return name.lower()
 
 
+def _is_binary(kind: str) -> bool:
+    """Packed-bit descriptors (Hamming): ORB / AKAZE / BRISK, or an UNDEFINED row length that is not SIFT's."""
+    return kind in BINARY_KINDS or kind == "binary"
+
+
+def _descriptor_rows(desc, nbytes: int) -> tuple[str, np.ndarray]:
+    """``(kind, rows)`` of a ``pycolmap.FeatureDescriptors`` with ``nbytes`` per row: SIFT and packed binary rows as
+    stored (uint8, no copy), any other type as float32 (``to_float``)."""
+    kind = _descriptor_kind(desc.type, nbytes)
+    if kind == "sift" or _is_binary(kind):
+        return kind, np.asarray(desc.data)
+    return kind, np.asarray(desc.to_float().data, dtype=np.float32)
+
+
 class ColmapSource(FeatureSource):
     """Features of a COLMAP database (read through ``pycolmap.Database``).
 
@@ -302,19 +316,19 @@ class ColmapSource(FeatureSource):
         kp = np.asarray(kp, dtype=np.float64).reshape(len(kp), -1) if len(kp) else np.zeros((0, 2))
         data = np.asarray(desc.data)
         nbytes = int(data.shape[1]) if data.ndim == 2 and len(data) else self._desc[1]
-        kind = _descriptor_kind(desc.type, nbytes)
+        kind, rows = _descriptor_rows(desc, nbytes)
         if len(data) and (kind, nbytes) != self._desc:
             raise InputError(f"{self.path}: mixed descriptor types: image {name!r} has {kind} ({nbytes} bytes), "
                              f"image {self._ref!r} has {self._desc[0]} ({self._desc[1]} bytes); "
                              "one collection needs one descriptor type")
         if kind == "sift":
-            descriptors = data.astype(np.float32)
+            descriptors = rows.astype(np.float32)
             fkind = "sift"
-        elif kind in BINARY_KINDS or kind == "binary":
-            descriptors = np.ascontiguousarray(data, dtype=np.uint8)
+        elif _is_binary(kind):
+            descriptors = np.ascontiguousarray(rows, dtype=np.uint8)
             fkind = kind if kind in BINARY_KINDS else "user"
         else:
-            descriptors = np.asarray(desc.to_float().data, dtype=np.float32)
+            descriptors = rows
             fkind = "user"
         scales = angles = None
         if kp.shape[1] == 4:
