@@ -76,3 +76,28 @@ def test_repeat_runs_alternate_the_order_and_report_medians(monkeypatch, tmp_pat
     calls.clear()
     rep = bc._repeat_runs(row, 2, False, lambda tag: tmp_path / f"{tag}.db", tmp_path / "rep.jsonl")
     assert calls == ["ours", "colmap"] and set(rep) == {"colmap", "ours"}
+
+
+def test_scaling_accounting_bounds_the_two_worker_time_from_its_cpu_time():
+    from guidedmatch.evaluation.bench_collection import markdown, scaling_accounting
+
+    w1 = dict(wall_s=10.0, cpu_s=11.0, summary=dict(load_s=0.5, image_loads=8),
+              pair_match_s={"a b": 1.0, "a c": 1.0, "b c": 2.0})
+    w2 = dict(wall_s=6.5, cpu_s=12.0, summary=dict(load_s=1.5, image_loads=15),
+              pair_match_s={"a b": 1.2, "a c": 1.1, "b c": 2.0, "x y": 9.0})
+    acc = scaling_accounting(w1, w2, cores=2, target=0.6)
+    assert acc["ratio"] == 0.65 and acc["cpu_bound_s"] == 6.0 and acc["cpu_bound_without_extra_loads_s"] == 5.5
+    assert acc["pair_slowdown"] == 1.1 and acc["pairs_compared"] == 3  # only the pairs both runs matched
+    assert acc["target_reachable"] is True  # 5.5 / 10 <= 0.6: the bound does not rule the target out
+    assert scaling_accounting(w1, dict(w2, cpu_s=14.0))["target_reachable"] is False  # (14 - 1) / 2 / 10 > 0.6
+    # a run without CPU times (an older JSON) gives no bound, and no claim
+    assert "cpu_bound_s" not in scaling_accounting(dict(w1, cpu_s=None), dict(w2, cpu_s=None))
+    feats = dict(features_mean=1.0, images=8)
+    run = dict(wall_s=1.0, inner_s=1.0, db=dict(verified_pairs=1, verified_inliers=1), summary=dict(wall_s=1.0))
+    row = dict(features=feats, colmap=run, ours=run, rerun=dict(run, summary=dict(skipped=1, wall_s=0.1)),
+               mapping_ours=dict(registered=8), warmup=dict(wall_s=0.5), scaling_accounting=acc,
+               ratios=dict(time_ours_over_colmap=1.0, inliers_ours_over_colmap=1.0, workers_2_over_1=0.65,
+                           workers_2_over_1_matching=0.6))
+    text = markdown(dict(meta={}, note="n", sets=dict(default=row)))
+    line = next(x for x in text.splitlines() if x.startswith("| default | 1 |"))
+    assert "| 0.65 |" in line and "| 6.00 |" in line and "| 0.55 |" in line
