@@ -72,6 +72,9 @@ def test_repeat_runs_alternate_the_order_and_report_medians(monkeypatch, tmp_pat
     assert rep["colmap"]["walls"][0] == 3.3 and len(rep["colmap"]["walls"]) == 3
     assert rep["ours"]["median"] == sorted(rep["ours"]["walls"])[1]
     assert rep["workers_2"]["min"] == min(rep["workers_2"]["walls"]) and rep["workers_1"]["max"] == 12.5
+    # one CPU entry and one 1-vs-2-worker accounting per round, round k against round k
+    assert len(rep["ours"]["cpu"]) == 3 and len(rep["scaling_rounds"]) == 3
+    assert [a["wall_2_s"] for a in rep["scaling_rounds"]] == rep["workers_2"]["walls"]
     # without scaling only COLMAP and ours repeat
     calls.clear()
     rep = bc._repeat_runs(row, 2, False, lambda tag: tmp_path / f"{tag}.db", tmp_path / "rep.jsonl")

@@ -192,19 +192,15 @@ print(len(recs), 0 if best is None else best.num_reg_images(), time.perf_counter
 def _repeat_runs(row: dict, repeats: int, scaling: bool, copy, log: Path) -> dict:
     """``repeats - 1`` more rounds of COLMAP vs ours (and, with ``scaling``, 1 vs 2 local workers), each on a fresh
     copy of the database, the order alternating from round to round; with the first runs already in ``row``:
-    ``{method: {"walls", "median", "min", "max"}}``. A single run moves by +-0.1-0.2 s at ~2 s on this machine."""
+    ``{method: {"walls", "median", "min", "max", "cpu"}}``, plus with ``scaling`` ``"scaling_rounds"``: each round's
+    1- vs 2-worker :func:`scaling_accounting`. A single run moves by +-0.1-0.2 s at ~2 s on this machine."""
     import statistics
 
-    walls = {"colmap": [row["colmap"]["wall_s"]], "ours": [row["ours"]["wall_s"]]}
-    cpus = {k: [row[k].get("cpu_s")] for k in walls}
-    runs_of: dict = {}
     runs = {"colmap": lambda: colmap_match(copy("rep-colmap")), "ours": lambda: ours(copy("rep-ours"), log)}
     if scaling:
-        walls.update(workers_1=[row["workers_1"]["wall_s"]], workers_2=[row["workers_2"]["wall_s"]])
-        cpus.update(workers_1=[row["workers_1"].get("cpu_s")], workers_2=[row["workers_2"].get("cpu_s")])
-        runs_of.update(workers_1=[row["workers_1"]], workers_2=[row["workers_2"]])
         runs.update(workers_1=lambda: ours(copy("rep-w1"), log, "--workers", "1"),
                     workers_2=lambda: ours(copy("rep-w2"), log, "--workers", "2"))
+    done = {k: [row[k]] for k in runs}  # every run of each method, the first one included
     for i in range(repeats - 1):
         for pair in (("colmap", "ours"), ("workers_1", "workers_2")):
             for key in (pair if i % 2 else pair[::-1]):
@@ -212,13 +208,14 @@ def _repeat_runs(row: dict, repeats: int, scaling: bool, copy, log: Path) -> dic
                     r = runs[key]()
                     if r["returncode"] != 0:
                         raise RuntimeError(f"repeat run {key} failed: {r['stderr_tail']}")
-                    walls[key].append(r["wall_s"])
-                    cpus[key].append(r.get("cpu_s"))
-                    if key in runs_of:
-                        runs_of[key].append(r)
-    out = {k: dict(walls=v, median=statistics.median(v), min=min(v), max=max(v), cpu=cpus[k]) for k, v in walls.items()}
-    if scaling:  # round k's 1-worker run against round k's 2-worker run (scaling_accounting)
-        out["scaling_rounds"] = [scaling_accounting(a, b) for a, b in zip(runs_of["workers_1"], runs_of["workers_2"])]
+                    done[key].append(r)
+    out = {}
+    for k, rs in done.items():
+        walls = [r["wall_s"] for r in rs]
+        out[k] = dict(walls=walls, median=statistics.median(walls), min=min(walls), max=max(walls),
+                      cpu=[r.get("cpu_s") for r in rs])
+    if scaling:  # round k's 1-worker run against round k's 2-worker run
+        out["scaling_rounds"] = [scaling_accounting(a, b) for a, b in zip(done["workers_1"], done["workers_2"])]
     return out
 
 
