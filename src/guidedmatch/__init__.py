@@ -24,7 +24,7 @@ _EXPORTS = {
     "match": "matcher", "GuidanceModels": "matcher",
     "MatcherConfig": "config", "Mode": "config", "MODES": "config",
     "MatchResult": "results", "MatchStats": "results", "ModelUpdate": "results", "Fallback": "results",
-    "PhaseTimes": "results", "CandidateStats": "results", "Failure": "results",
+    "PhaseTimes": "results", "CandidateStats": "results", "Failure": "base",
     "match_bruteforce": "bruteforce",
     "prepare": "prepared", "PreparedImage": "prepared", "PreparedConfig": "prepared",
     # estimators

@@ -53,7 +53,7 @@ import cv2
 import numpy as np
 
 from .epipolar import check_points, epipoles, map_points, normalize_fundamental, skew
-from .results import Failure
+from .base import APPROACHES, Failure
 
 __all__ = [
     "APPROACHES",
@@ -77,8 +77,6 @@ __all__ = [
     "safe_alignment",
 ]
 
-#: Alignment approaches: the paper's four (``"a"``-``"d"``) plus ``"c_inplane"`` (the intended approach 3).
-APPROACHES = ("a", "b", "c", "c_inplane", "d")
 
 _E3 = np.array([0.0, 0.0, 1.0])
 _W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -570,7 +568,7 @@ HORIZON_DIAGONALS = 0.5
 
 def check_alignment(H, pts, size, *, scale_bounds: tuple[float, float] = SCALE_BOUNDS,
                     horizon_diagonals: float = HORIZON_DIAGONALS) -> AlignmentCheck:
-    """Validate an alignment homography over the keypoints it will move (Teng & Dong §III-E; issue 11).
+    """Validate an alignment homography over the keypoints it will move (Teng & Dong §III-E).
 
     The matcher compares aligned x-ranks and measures the epipolar band in aligned pixels, so a homography is
     only safe when, over the keypoints ``pts (N, 2)`` (pixels) of the image it maps (size ``(w, h)``):

@@ -10,6 +10,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal, get_args
 
+from .base import APPROACHES, USAC_METHOD_NAMES, Alignment, RansacMethod
 from .errors import ConfigError
 from .validation import check_bool, check_choice, check_fields, check_number
 
@@ -19,10 +20,8 @@ ModeName = Literal["bf", "epi", "so", "so+epi", "so+epi+ia"]
 #: The matching modes, cheapest guidance last (Teng & Dong §IV compare BF, SO, SO+EPI, SO+EPI+IA; EPI is the classic
 #: epipolar-guided baseline). The one list every module and the CLI use.
 MODES: tuple[str, ...] = get_args(ModeName)
-#: Alignment approaches of :func:`guidedmatch.alignment.align_from_fundamental` (§III-E)
-Alignment = Literal["a", "b", "c", "c_inplane", "d"]
-#: OpenCV USAC variants of :func:`guidedmatch.epipolar.estimate_fundamental` (keys of ``USAC_METHODS``)
-RansacMethod = Literal["magsac", "accurate", "default", "prosac", "ransac", "lmeds"]
+# Alignment (the approaches of guidedmatch.alignment, APPROACHES) and RansacMethod (the OpenCV USAC variants of
+# guidedmatch.epipolar, USAC_METHOD_NAMES) are defined in guidedmatch.base and found here too
 #: Overlap-window searches of the spatial-order model (Talker §4.3)
 Overlap = Literal["k1d", "k2d", "none"]
 
@@ -111,7 +110,7 @@ class MatcherConfig:
     min_model_matches: int = 16          # fewer correspondences than this: no model is fitted (reported)
     seed: int = 0                        # seeds RANSAC and the draw order within groups without responses
     start: Literal["verified", "paper"] = "verified"  # "verified": the first model guides only once the two-view verdict
-                                         # on the unguided correspondences is "verified" (beyond the paper, issue 11);
+                                         # on the unguided correspondences is "verified" (beyond the paper);
                                          # "paper": first model after update_every correspondences, whatever they are
     first_check: int = 32                # unguided correspondences before the first verdict check (start="verified")
     check_growth: float = 1.5            # the next check waits until the evidence has grown by this factor
@@ -149,9 +148,6 @@ class MatcherConfig:
     bf_below_binary: int = 12000         # binary descriptors: BF below this (popcount BF is cheap; ORB/AKAZE crossover)
 
     def __post_init__(self) -> None:
-        from .alignment import APPROACHES
-        from .epipolar import USAC_METHODS
-
         o = type(self).__name__
         check_number(o, "num_groups", self.num_groups, lo=1, integer=True)
         check_number(o, "update_every", self.update_every, lo=8, integer=True)
@@ -165,7 +161,7 @@ class MatcherConfig:
         if self.one_to_one is not None:
             check_bool(o, "one_to_one", self.one_to_one)
         check_number(o, "max_distance", self.max_distance, lo=0, allow_none=True)
-        check_choice(o, "ransac_method", self.ransac_method, tuple(USAC_METHODS))
+        check_choice(o, "ransac_method", self.ransac_method, USAC_METHOD_NAMES)
         check_number(o, "ransac_threshold", self.ransac_threshold, lo=0, lo_open=True)
         check_choice(o, "so_overlap", self.so_overlap, get_args(Overlap))
         check_number(o, "batch_size", self.batch_size, lo=1, integer=True)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .results import Failure
+from .base import Failure
 
 __all__ = [
     "FundamentalResult",
@@ -50,7 +50,8 @@ MIN_POINTS = 8
 #: LO iterations). These mirror OpenCV's ``USAC_*`` presets (``calib3d/src/usac/ransac_solvers.cpp``
 #: ``setParameters``) but are run through ``cv2.UsacParams`` so that the random generator state
 #: (``seed``) can be set. ``"ransac"``/``"lmeds"`` are USAC with the plain RANSAC / LMedS score and
-#: no local optimisation (seeded too, unlike the legacy ``cv2.FM_RANSAC``/``cv2.FM_LMEDS``).
+#: no local optimisation (seeded too, unlike the legacy ``cv2.FM_RANSAC``/``cv2.FM_LMEDS``). The names are
+#: :data:`guidedmatch.base.USAC_METHOD_NAMES`, which the configs validate against without importing OpenCV.
 USAC_METHODS: dict[str, tuple[int, int, int, int, int]] = {
     "magsac": (cv2.SAMPLING_UNIFORM, cv2.SCORE_METHOD_MAGSAC, cv2.LOCAL_OPTIM_SIGMA, 50, 10),
     "accurate": (cv2.SAMPLING_UNIFORM, cv2.SCORE_METHOD_MSAC, cv2.LOCAL_OPTIM_GC, 20, 25),

@@ -32,8 +32,8 @@ that from the correspondences alone:
    on the subset RANSAC converges in hundreds of draws where 10000 over all the evidence run to the cap
    (Herz-Jesus 0001-0006 at 8192: 12 ms per re-check -> ~1 ms; more GT inliers on both feature sets, docs/pairs.md).
 
-Calibration (issue 11; Herz-Jesus-P8 and Unsplash photos, scripts ``/tmp/pairs/null_cal.py`` and
-``/tmp/pairs/evidence.py`` of the pairs helper, numbers in the commit messages):
+Calibration (Herz-Jesus-P8 and Unsplash photos; the numbers and the scripts that measured them are in the commit
+messages):
 
 * the area-based band probability underestimates what RANSAC reaches on real keypoint layouts: on 280 random
   pairings of real keypoints (Herz-Jesus vs Unsplash) the best F had up to 9 / 13 / 16 / 26 inliers at
@@ -61,17 +61,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from .base import USAC_METHOD_NAMES, VERDICTS
 from .epipolar import estimate_fundamental, sampson_distance
 
 __all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "report_geometry",
            "random_inlier_bound", "COLMAP_CONFIG", "consistent_frames", "fundamental_support", "spread_matches"]
 
-#: verdict -> meaning.
-VERDICTS = {
-    "verified": "a fundamental matrix or homography supported by more inliers than random correspondences reach",
-    "no-overlap": "no model is supported beyond chance: the images do not overlap (or share too little to tell)",
-    "too-few-matches": "fewer correspondences than a model needs (8 for F, 4 for H): nothing can be verified",
-}
+# VERDICTS (verdict -> meaning) is defined in guidedmatch.base and found here too
 
 #: COLMAP ``TwoViewGeometry.ConfigurationType`` value for each (verdict, model) a sink writes.
 COLMAP_CONFIG = {("verified", "F"): 3, ("verified", "H"): 6}  # UNCALIBRATED, PLANAR_OR_PANORAMIC
@@ -100,10 +96,8 @@ class VerdictConfig:
                 raise ValueError(f"VerdictConfig.{name} must be a finite number > 0, got {v!r}")
         if self.frame_tolerance_deg > 180:
             raise ValueError(f"VerdictConfig.frame_tolerance_deg must be <= 180, got {self.frame_tolerance_deg!r}")
-        from .epipolar import USAC_METHODS
-
-        if self.method not in USAC_METHODS:
-            raise ValueError(f"VerdictConfig.method must be one of {sorted(USAC_METHODS)}, got {self.method!r}")
+        if self.method not in USAC_METHOD_NAMES:
+            raise ValueError(f"VerdictConfig.method must be one of {sorted(USAC_METHOD_NAMES)}, got {self.method!r}")
         for name in ("min_inliers", "max_iters", "seed"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:

@@ -1,7 +1,8 @@
 """Small result types shared by every module.
 
 * :class:`Failure` -- the falsy result an estimator returns instead of ``None`` or an exception
-  (after scikit-image's ``FailedEstimation``): ``if not res: print(res.reason)``.
+  (after scikit-image's ``FailedEstimation``): ``if not res: print(res.reason)`` (defined in
+  :mod:`guidedmatch.base`, which the estimators import without importing this module).
 * :class:`MatchResult` -- the output of every matcher: ``pairs (M, 2) int64`` index pairs
   ``(i1, i2)`` into image-1 / image-2 features, ``distances (M,) float32`` descriptor distances
   (L2 for float descriptors, Hamming bit count for binary ones), per-match ``flags`` and the run's
@@ -15,28 +16,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .base import Failure  # noqa: F401 - defined on the lowest floor (estimators return it), found here too
+
 if TYPE_CHECKING:  # pragma: no cover
     from .config import MatcherConfig
     from .geometry import TwoViewGeometry
-
-
-@dataclass(frozen=True)
-class Failure:
-    """Falsy result of an estimation that did not succeed.
-
-    Attributes:
-        reason: one human-readable sentence saying why (e.g. ``"fewer than 8 correspondences (5)"``).
-        details: optional machine-readable extras (counts, thresholds).
-    """
-
-    reason: str
-    details: dict = field(default_factory=dict)
-
-    def __bool__(self) -> bool:  # noqa: D105 - falsy by design
-        return False
-
-    def __str__(self) -> str:
-        return f"Failure: {self.reason}"
 
 
 def empty_pairs() -> np.ndarray:
