@@ -1,4 +1,4 @@
-"""Peak memory of feature detection vs image size (issue 14: the memory guard of ``features.detect``).
+"""Peak memory of feature detection vs image size (the memory guard of ``features.detect``).
 
 Each (detector, size) runs in a fresh process: a photo is resized (INTER_AREA) to the size, the peak-RSS counter
 (VmHWM) is reset through /proc/self/clear_refs, ``detectAndCompute`` runs, and the peak minus the resident size

@@ -386,7 +386,7 @@ def test_khat_matches_scipy_reference(seed, n):
     assert khat(x1, x2) == pytest.approx((d < 0).sum() / (n * (n - 1)), abs=1e-12)
 
 
-# ------------------------------------------------------------------------- validation (issue 11)
+# ------------------------------------------------------------------------- validation (check_alignment)
 from guidedmatch.alignment import check_alignment, safe_alignment  # noqa: E402
 from hypothesis.extra import numpy as hnp  # noqa: E402
 

@@ -172,7 +172,7 @@ def test_bench_pairs_quick_writes_consistent_json_md_png(tmp_path):
     assert tot["bf"]["gt_inliers"] == sum(r["methods"]["bf"]["gt_inliers"] for r in scene)
     assert tot["so+epi+ia"]["time_s"] == pytest.approx(sum(r["methods"]["so+epi+ia"]["time_s"] for r in scene))
     md = (tmp_path / "pairs.md").read_text()
-    for part in ("## Feature set `8192`", "### Totals over the 2 Herz-Jesus-P8 pairs", "### Issue-11 targets",
+    for part in ("## Feature set `8192`", "### Totals over the 2 Herz-Jesus-P8 pairs", "### Targets on this run",
                  "IVF-SQ8 cached (search)", "/ faiss exact", "load average", "(+ prepare amortized)"):
         assert part in md
     png = tmp_path / "pairs_angle.png"

@@ -1,4 +1,4 @@
-"""Collection engine (issue 12): scheduling, resume, retries, local cluster -- with in-memory test doubles.
+"""Collection engine: scheduling, resume, retries, local cluster -- with in-memory test doubles.
 
 The doubles implement the FeatureSource / MatchSink interfaces of INTERFACES.md: a dict-backed source of synthetic
 multi-view features (3-D points seen by cameras with known poses, one view of unrelated points) and a list-backed

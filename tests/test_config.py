@@ -11,7 +11,7 @@ from guidedmatch.validation import config_from
 
 NAN, INF = float("nan"), float("inf")
 
-# every bad value named in issue 10, then a range / type / NaN violation for every field
+# the bad values a user is likely to pass first, then a range / type / NaN violation for every field
 BAD = [
     ("band_px", NAN), ("so_threshold", -1), ("so_threshold", NAN), ("ransac_threshold", -1), ("seed", 1.5),
     ("max_distance", -1), ("ransac_method", "magsca"),

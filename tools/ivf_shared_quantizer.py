@@ -12,7 +12,7 @@ evaluations per query (coarse + probed lists).
 
     python tools/ivf_shared_quantizer.py /tmp/lead_coll/default.db
 
-Session 20 (2026-12-01), Herz-Jesus-P8: 11.4k: builds 0.31 s -> 0.03 s training + 0.08-0.10 s adds; 1-NN recall
+Measured on Herz-Jesus-P8 (2026-12-01): 11.4k: builds 0.31 s -> 0.03 s training + 0.08-0.10 s adds; 1-NN recall
 (all queries, not only ratio-test matches) -0.05 to +0.02 (per-image 0.75-0.87); comparisons +1-2 %. 68k: 2.36 s ->
 0.16 + 1.11 s; recall -0.01; comparisons +1.5-4 %. Not adopted: the recall loss at 11.4k needs checking against
 verified inliers and verdicts, the matcher's ski-rental uses the build cost (``PreparedImage.build_comparisons``),

@@ -8,7 +8,7 @@ time and whether Ceres converged or stopped at the iteration cap -- then the tot
     python tools/mapper_profile.py /tmp/sfm_bench/final/work/8192/so_epi_ia_ours/database.db \\
         /tmp/sfm_bench/final/work/8192/colmap/database.db --images $GUIDEDMATCH_DATA/pose_pairs/strecha/Herz-Jesus-P8/images
 
-Session 21 (2026-12-01), Herz-Jesus-P8 at 8192 features, two runs each: our database (39,447 observations in the
+Measured on Herz-Jesus-P8 (2026-12-01) at 8192 features, two runs each: our database (39,447 observations in the
 model) mapped in 6.2 / 7.5 s (8.7 / 10.5 s CPU), 4.8 / 5.6 s of it in bundle adjustments; COLMAP's (29,454) in
 4.9 / 5.2 s (5.2 / 5.5 s CPU), 3.7 / 3.7 s. The first local adjustment after each registration stopped at the
 25-iteration cap for all 6 of our registrations and for 3 of COLMAP's 6: more residuals per adjustment, and more

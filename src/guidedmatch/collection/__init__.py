@@ -1,4 +1,4 @@
-"""Match whole image collections (issue 12): feature sources, pair lists and match sinks (COLMAP / hloc files).
+"""Match whole image collections: feature sources, pair lists and match sinks (COLMAP / hloc files).
 
 ``sources``: :class:`ColmapSource`, :class:`H5Source`, :func:`open_source`, :func:`images_to_database`.
 ``pairs``: :class:`PairList`, :func:`exhaustive_pairs`, :func:`sequential_pairs`, :func:`read_pairs_file`,

@@ -1,4 +1,4 @@
-"""Collection benchmark (issue 12): ``guidedmatch colmap DB --pairs exhaustive`` vs ``pycolmap.match_exhaustive``.
+"""Collection benchmark: ``guidedmatch colmap DB --pairs exhaustive`` vs ``pycolmap.match_exhaustive``.
 
 ``python -m guidedmatch.evaluation.bench_collection [--out benchmarks/results/collection] [--work DIR]``
 
@@ -220,7 +220,7 @@ def _repeat_runs(row: dict, repeats: int, scaling: bool, copy, log: Path) -> dic
 
 
 def scaling_accounting(w1: dict, w2: dict, cores: int = THREADS, target: float = 0.6) -> dict:
-    """Where the time of 2 local workers goes, against 1 (issue 12's ``<= 0.6x`` target), from the CPU time of the
+    """Where the time of 2 local workers goes, against 1 (the ``<= 0.6x`` scaling target), from the CPU time of the
     two fresh processes (:func:`_timed`: the command, its cluster's scheduler and its workers) and their pair logs.
 
     On ``cores`` cores no schedule finishes before ``cpu_2 / cores``: that is ``cpu_bound_s``, a lower bound on the

@@ -1,4 +1,4 @@
-"""``guidedmatch bench pairs``: every pair of a collection, wide baselines and unrelated images (issue 11).
+"""``guidedmatch bench pairs``: every pair of a collection, wide baselines and unrelated images.
 
 What it measures
 ----------------
@@ -59,7 +59,7 @@ LABEL = {"so+epi+ia": "so+epi+ia", "so+epi+ia+prep": "so+epi+ia (+ prepare amort
          "faiss_flat": "faiss exact",
          "faiss_ivf": "IVF-SQ8 cached (search)", "faiss_ivf+build": "IVF-SQ8 (+ build amortized)",
          "opencv_flann": "OpenCV FLANN"}
-FLANN = dict(trees=4, checks=64)  # as benchmarks/bench_guided.py (the issue's FLANN ratios)
+FLANN = dict(trees=4, checks=64)  # as benchmarks/bench_guided.py (the FLANN ratios of its table)
 QUICK = dict(scale=0.5, pairs=("0000-0001", "0000-0005"), unrelated=1, cap={"8192": 2048, "0.01": 6000})
 DENSE_PAIR = ("0002", "0003")
 DENSE_CT = 0.002
@@ -387,7 +387,7 @@ def totals(rows: list[dict], columns=COLUMNS) -> dict:
 
 
 def targets(set_name: str, scene_rows: list[dict], unrel_rows: list[dict]) -> list[dict]:
-    """The issue-11 targets measured on this run: ``[{target, value, ok}]`` (so+epi+ia unless named)."""
+    """The pair-matching targets measured on this run: ``[{target, value, ok}]`` (so+epi+ia unless named)."""
     t = totals(scene_rows)
     g = t.get("so+epi+ia")
     out = []
@@ -436,7 +436,7 @@ def targets(set_name: str, scene_rows: list[dict], unrel_rows: list[dict]) -> li
 
 # --------------------------------------------------------------------------------------------- extras
 def run_dense(root, out, *, quick, repeats, config, progress=True) -> dict:
-    """Pair 0002/0003 at ``contrastThreshold=0.002``: so+epi+ia vs faiss exact, FLANN, our BF (issue-11 target)."""
+    """Pair 0002/0003 at ``contrastThreshold=0.002``: so+epi+ia vs faiss exact, FLANN, our BF (a speed target)."""
     from ..datasets import strecha_scene_pairs
 
     pair = next(p for p in strecha_scene_pairs(root, SCENE) if p.name.endswith("-".join(DENSE_PAIR)))
@@ -620,7 +620,7 @@ def write_report(out: Path, res: dict, command: str) -> Path:
                    f"{s['features']['unrelated_long_side']} px, its {s['features'].get('unrelated_photo_cap', 0):,} "
                    "strongest features at most: as many as the largest Herz-Jesus image has)", "",
                    totals_table(totals(unrel)), ""]
-        md += ["### Issue-11 targets on this run", "", _targets_md(s["targets"]), "", "### Per pair", "",
+        md += ["### Targets on this run", "", _targets_md(s["targets"]), "", "### Per pair", "",
                pair_tables(s["rows"]), "",
                f"IVF index builds per image (s): " + ", ".join(f"{k} {v['ivf_build_s']:.2f}" for k, v in s["images"].items()), ""]
     if res.get("dense"):
