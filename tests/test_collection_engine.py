@@ -18,9 +18,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from guidedmatch.collection import engine
-from guidedmatch.collection.engine import (CollectionConfig, _ImageCache, _TaskSpec, match_collection,
-                                           plan_tasks)
+from guidedmatch.collection import cache as engine_cache
+from guidedmatch.collection import inprocess, planning
+from guidedmatch.collection.cache import _ImageCache, _TaskSpec
+from guidedmatch.collection.engine import CollectionConfig, match_collection, plan_tasks
 from guidedmatch.errors import ConfigError, InputError
 from guidedmatch.features import Features
 from guidedmatch.geometry import VERDICTS
@@ -179,15 +180,13 @@ def test_in_process_threads_give_the_direct_calls_matches_and_report_the_thread_
 
 
 def test_auto_backend_rule(monkeypatch):
-    from guidedmatch.collection import engine
-
-    monkeypatch.setattr(engine, "_usable_cores", lambda: 2)
+    monkeypatch.setattr(planning, "_usable_cores", lambda: 2)
     cfg = CollectionConfig(inprocess_max_work=1000)
-    assert engine._choose_backend(cfg, None, 1000)[:2] == ("in-process", 0)
-    assert engine._choose_backend(cfg, None, 1001)[:2] == ("local-cluster", 2)
-    monkeypatch.setattr(engine, "_usable_cores", lambda: 1)
-    assert engine._choose_backend(cfg, None, 10**9)[0] == "in-process"
-    assert engine._choose_backend(CollectionConfig(workers=3), None, 1)[:2] == ("local-cluster", 3)
+    assert planning._choose_backend(cfg, None, 1000)[:2] == ("in-process", 0)
+    assert planning._choose_backend(cfg, None, 1001)[:2] == ("local-cluster", 2)
+    monkeypatch.setattr(planning, "_usable_cores", lambda: 1)
+    assert planning._choose_backend(cfg, None, 10**9)[0] == "in-process"
+    assert planning._choose_backend(CollectionConfig(workers=3), None, 1)[:2] == ("local-cluster", 3)
 
 
 def test_cache_bound_evicts_and_keeps_the_pair_being_matched(views):
@@ -218,20 +217,20 @@ def test_prefetch_builds_the_queued_indexes_in_order_until_told_to_stop():
     cache = _ImageCache(DictSource(feats), spec)
     cache.get("b", ("b",))  # already loaded by a pair: reached, not counted as a reuse
     stop = threading.Event()
-    assert engine._prefetch_indexes(cache, ["b", "c"], stop) == 2
+    assert inprocess._prefetch_indexes(cache, ["b", "c"], stop) == 2
     assert list(cache.items) == ["b", "c"] and cache.hits == 0 and cache.loads == 2 and cache.prefetch_loads == 1
     assert all(cache.items[n].prepared._index is not None for n in "bc")
     stop.set()
-    assert engine._prefetch_indexes(cache, ["d"], stop) == 0 and "d" not in cache.items
+    assert inprocess._prefetch_indexes(cache, ["d"], stop) == 0 and "d" not in cache.items
     # a full cache stops it too (it never evicts what the pairs loaded)
     full = _ImageCache(DictSource(feats), spec.__class__(**{**spec.__dict__, "cache_bytes": 0}))
-    assert engine._prefetch_indexes(full, ["a"], threading.Event()) == 0 and not full.items
+    assert inprocess._prefetch_indexes(full, ["a"], threading.Event()) == 0 and not full.items
     # a failing load is left to the pair that needs it
     bad = _ImageCache(DictSource(feats, fail={"a"}), spec)
-    assert engine._prefetch_indexes(bad, ["a", "b"], threading.Event()) == 0
+    assert inprocess._prefetch_indexes(bad, ["a", "b"], threading.Event()) == 0
     # the order: each queued pair's second image, in the order the in-process runner takes the tasks
-    q = engine._Queue(plan_tasks([("a", "b"), ("a", "c"), ("b", "c"), ("d", "a")], ["a", "b", "c", "d"], 2))
-    assert engine._index_order(q) == ["b", "c", "a"]
+    q = planning._Queue(plan_tasks([("a", "b"), ("a", "c"), ("b", "c"), ("d", "a")], ["a", "b", "c", "d"], 2))
+    assert inprocess._index_order(q) == ["b", "c", "a"]
 
 
 class _Sized:
@@ -252,7 +251,7 @@ class _SizedSource:
 def _simulate(plan, sizes, cache_bytes):
     """Run ``plan`` in order through the engine's own image cache, one pair at a time as the in-process runner
     does; ``{image: index builds}`` (an image is indexed when a pair searches it, i.e. it is the second image)."""
-    with mock.patch.object(engine, "_prepare_fn", lambda: None):  # the sizes are what is cached
+    with mock.patch.object(engine_cache, "_prepare_fn", lambda: None):  # the sizes are what is cached
         cache = _ImageCache(_SizedSource(sizes), _TaskSpec("t", "so+epi+ia", MatcherConfig(), cache_bytes=cache_bytes,
                                                            single_thread=False))
     builds = dict.fromkeys(sizes, 0)
@@ -284,7 +283,7 @@ def test_plan_sweeps_a_collection_larger_than_the_cache_and_indexes_each_image_o
     if sum(sizes[k] for k in used) <= cache_bytes:                       # fits: the plain anchor plan
         assert plan == plan_tasks(pairs, names, chunk)
     else:
-        blocks = engine.resident_blocks(sorted(used), sizes, cache_bytes)
+        blocks = planning.resident_blocks(sorted(used), sizes, cache_bytes)
         for (k, a), tasks in plan.items():
             assert all(x == a and blocks[b] == k for t in tasks for x, b in t)
         assert [k for k, _ in plan] == sorted(k for k, _ in plan)       # sweep after sweep
@@ -304,7 +303,7 @@ def test_plan_sweeps_cut_the_loads_of_an_exhaustive_collection():
 
 
 def test_cache_evicts_images_without_an_index_first(monkeypatch):
-    monkeypatch.setattr(engine, "_prepare_fn", lambda: None)
+    monkeypatch.setattr(engine_cache, "_prepare_fn", lambda: None)
     cache = _ImageCache(_SizedSource(dict.fromkeys("abcd", 10)),
                         _TaskSpec("t", "so+epi+ia", MatcherConfig(), cache_bytes=30, single_thread=False))
     cache.get("a", ("a",)).prepared._index = object()                   # oldest, but indexed
@@ -418,7 +417,7 @@ def test_plan_tasks_covers_each_pair_once_grouped_by_anchor(raw, chunk):
 def test_queue_hands_out_every_task_once_and_suspects_only_when_idle(raw, chunk, per_anchor, rnd):
     """_Queue under a random completion order: every planned pair is handed out exactly once, at most per_anchor
     tasks of an anchor are in flight while another anchor still has a free slot, suspects wait for an idle cluster."""
-    from guidedmatch.collection.engine import _Queue
+    from guidedmatch.collection.planning import _Queue
 
     names = [f"im{i}" for i in range(7)]
     pairs = [(names[a], names[b]) for a, b in raw]
@@ -466,7 +465,7 @@ def cluster_client():
     import cloudpickle
     from distributed import Client, LocalCluster
 
-    from guidedmatch.collection.engine import _SINGLE_THREAD_ENV
+    from guidedmatch.collection.dask_backend import _SINGLE_THREAD_ENV
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     import dask

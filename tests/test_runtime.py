@@ -60,7 +60,7 @@ def test_numba_set_up_falls_back_when_hiding_scipy_breaks_it():
         import contextlib, json
         import numpy as np
         from guidedmatch import _runtime
-        from guidedmatch.collection import engine
+        from guidedmatch.collection import worker
         _runtime.mark_own_process()
 
         @contextlib.contextmanager
@@ -69,8 +69,8 @@ def test_numba_set_up_falls_back_when_hiding_scipy_breaks_it():
             raise ImportError("scipy.special hidden")  # ... and then needs SciPy
             yield
 
-        engine.without_numba_blas_probe = broken
-        engine._load_numba()
+        worker.without_numba_blas_probe = broken
+        worker._load_numba()
         from guidedmatch import kernels
         order, offsets = kernels.counting_order(np.array([1, 0], np.int64), 2)
         print(json.dumps(order.tolist()))

@@ -103,7 +103,7 @@ def _timed(cmd: list[str], log: Path | None = None, env: dict | None = None) -> 
 
 
 def _backend(s: dict) -> str:
-    from ..collection.engine import _workers_text
+    from ..collection.report import _workers_text
 
     return f"{s.get('backend')} ({_workers_text(s)})"
 
