@@ -1,6 +1,6 @@
 """``guidedmatch bench sfm``: COLMAP's matcher vs guidedmatch inside COLMAP's own mapper, judged on GT poses.
 
-Protocol (issue 13), per feature setting (COLMAP's default 8192 SIFT features; ~50k with peak_threshold 0.002):
+Protocol, per feature setting (COLMAP's default 8192 SIFT features; ~50k with peak_threshold 0.002):
 
 1. extract pycolmap SIFT once into a database (CPU, ``--threads`` threads); every method gets a *copy* of it,
    so all methods see the same keypoints and descriptors;
