@@ -104,7 +104,7 @@ def test_data_root_search_order(tmp_path, monkeypatch):
     work = tmp_path / "a" / "repo"
     work.mkdir(parents=True)
     monkeypatch.chdir(work)
-    monkeypatch.setattr(D, "_repo_root", lambda: tmp_path / "elsewhere" / "repo")
+    monkeypatch.setattr(D.root, "_repo_root", lambda: tmp_path / "elsewhere" / "repo")
     assert D.data_root() is None
     (tmp_path / "a" / "shared" / "data").mkdir(parents=True)
     assert D.data_root() == (tmp_path / "a" / "shared" / "data").resolve()
