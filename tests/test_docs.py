@@ -196,3 +196,22 @@ def test_readme_is_short_and_answers_the_collection_question_on_the_first_screen
     assert len(text.encode()) <= 13_000
     first_screen = "\n".join(text.splitlines()[:60])
     assert "guidedmatch colmap" in first_screen and "guidedmatch sfm" in first_screen
+
+
+def test_parser_is_found_in_a_cli_package_that_does_not_reexport_it(tmp_path, monkeypatch):
+    """After cli.py becomes a cli/ package, the generator still finds the parser factory (in the package or in one
+    of its modules)."""
+    import types
+
+    gen = _gen_docs()
+    (tmp_path / "main.py").write_text("")
+    pkg = types.ModuleType("guidedmatch.cli")
+    pkg.__path__ = [str(tmp_path)]
+    main = types.ModuleType("guidedmatch.cli.main")
+    main.build_parser = lambda: argparse.ArgumentParser(prog="found")
+    modules = {"guidedmatch.cli": pkg, "guidedmatch.cli.main": main}
+    monkeypatch.setattr(gen.importlib, "import_module", lambda name: modules[name])
+    assert gen.find_parser().prog == "found"
+    del main.build_parser
+    with pytest.raises(SystemExit):
+        gen.find_parser()
