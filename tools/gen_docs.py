@@ -44,11 +44,16 @@ _TRACKER_REFS = (re.compile(r"\s*\(\s*(?:issues?|sessions?)\s*#?\d+\s*\)", re.I)
                  re.compile(r"\b(?:issues?|sessions?)\s*#?\d+[,;:]?\s*", re.I))        # "issue 11; ..."
 
 
-def _clean(text: str) -> str:
-    """``text`` without issue / session citations (the docs describe the code, not its history)."""
+def _strip_refs(text: str) -> str:
+    """``text`` without issue / session citations (the docs describe the code, not its history); layout kept."""
     for pattern in _TRACKER_REFS:
         text = pattern.sub("", text)
-    return re.sub(r"[ \t]{2,}", " ", text).strip()
+    return text
+
+
+def _clean(text: str) -> str:
+    """:func:`_strip_refs`, runs of blanks collapsed (for one-line table cells and paragraphs)."""
+    return re.sub(r"[ \t]{2,}", " ", _strip_refs(text)).strip()
 
 
 def _rst_to_md(text: str) -> str:
@@ -184,7 +189,7 @@ def _command_section(name: str, short: str | None, sub: argparse.ArgumentParser,
             out.append(f"| `{flag}{' ' + mv if mv else ''}` | {f'`{d}`' if d else ''} | {_md_cell(_help_text(a, name))} |")
         out.append("")
     if sub.epilog:
-        out += ["```", sub.epilog.strip("\n"), "```", ""]
+        out += ["```", _strip_refs(sub.epilog).strip("\n"), "```", ""]
     for child, child_help, child_sub in _subcommands(sub):
         out += _command_section(f"{name} {child}", child_help, child_sub, level + 1)
     return out
