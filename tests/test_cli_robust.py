@@ -308,7 +308,7 @@ def test_match_reports_compilation_apart_from_time_s(small_scene_features, monke
     def fake_monitor(note=True, stream=None):
         yield Fake(note=False)
 
-    monkeypatch.setattr(matcher, "compile_monitor", fake_monitor)
+    monkeypatch.setattr(matcher.run, "compile_monitor", fake_monitor)
     f1, f2 = small_scene_features
     t = _time.perf_counter()
     res = matcher.match(f1, f2, "so+epi+ia")

@@ -1,4 +1,4 @@
-"""guidedmatch.jit: first-run compilation in forked helpers, warm-up, which kernels a run needs (issue 14)."""
+"""guidedmatch.jit: first-run compilation in forked helpers, warm-up, which kernels a run needs."""
 import os
 import subprocess
 import sys

@@ -670,7 +670,7 @@ def test_band_edge_point_exact_for_integer_descriptors():
     assert r[4][0] == 1 and r[0][0] == 0
 
 
-# --------------------------------------------------------------------------- work bound (issue 11)
+# --------------------------------------------------------------------------- work bound
 def _occupied_strips_crossed(S, pts2, line, band, lo, hi):
     """Reference bound: the occupied strips of ``S`` that hold a point whose x lies in [lo, hi] and whose other
     coordinate lies within the band's extent over the strip -- i.e. strips the band really crosses inside the

@@ -126,8 +126,7 @@ class Features:
         ``cv2.KeyPoint.response``) -- or when all responses are equal -- the order inside each group is a seeded
         random permutation (``MatcherConfig.seed``), so the models, and hence the matches, differ slightly from a
         run on the same arrays with responses: Oxford graf 1-2, SIFT, ``so+epi+ia``: 1,189 matches with
-        responses, 1,185 / 1,197 / 1,193 without (seeds 0 / 1 / 2); issue 14 saw 1,467 vs 1,426 on another
-        pair. Results are deterministic for a given seed either way; pass ``responses=`` to reproduce a
+        responses, 1,185 / 1,197 / 1,193 without (seeds 0 / 1 / 2); another pair gave 1,467 vs 1,426. Results are deterministic for a given seed either way; pass ``responses=`` to reproduce a
         ``detect`` / ``from_cv`` run exactly.
 
         >>> import numpy as np
@@ -557,7 +556,7 @@ def _make_detector(method: str, max_features: int | None, options: dict):
         raise ConfigError(f"invalid option for {method} detector: {exc}") from None
 
 
-# ------------------------------------------------------------------ memory guard (issue 14)
+# ------------------------------------------------------------------ memory guard
 #: Peak extra memory of ``detectAndCompute`` in bytes per image pixel (grey 8-bit input): the largest of the
 #: measured per-pixel peaks (VmHWM, 1000x750 .. 3200x2400 photo, OpenCV 5.0; benchmarks/detect_memory.py, results in
 #: benchmarks/results/detect_memory.json) plus a few percent. SIFT's is its pyramid on the 2x upsampled image
@@ -570,7 +569,7 @@ DETECT_BYTES_BASE = 64 << 20  # fixed overhead (OpenCV buffers, keypoints, descr
 def estimate_detect_memory(width: int, height: int, method: str = "sift") -> int:
     """Estimated peak extra memory (bytes) of detecting ``method`` features on a ``width x height`` image.
 
-    >>> round(estimate_detect_memory(6000, 4500, "sift") / 1e9, 1)   # measured: 6.3 GB (issue 14)
+    >>> round(estimate_detect_memory(6000, 4500, "sift") / 1e9, 1)   # measured: 6.3 GB
     6.7
     """
     return int(DETECT_BYTES_BASE + DETECT_BYTES_PER_PIXEL[_check_method(method)] * int(width) * int(height))

@@ -1,4 +1,4 @@
-"""Numba compilation kept out of reported timings (issue 14).
+"""Numba compilation kept out of reported timings.
 
 The kernels (:mod:`guidedmatch.kernels`, :mod:`guidedmatch.spatial_order`) are compiled by Numba the first time
 they see a descriptor kind (``cache=True`` stores the machine code next to the sources, or in
@@ -111,7 +111,7 @@ def warm_up(f1, f2, mode: str, config=None, *, note: bool = True, max_features: 
     measure that with :func:`compile_monitor` and report it separately.
     """
     from .config import MatcherConfig, Mode
-    from .matcher import _bf_wins, match
+    from .matcher.run import _bf_wins, match
     from .validation import config_from
 
     a, b = _strongest(f1, max_features), _strongest(f2, max_features)
@@ -372,7 +372,7 @@ def guided_kernels_needed(f1, f2, modes, config=None) -> bool:
     ``auto_bf`` does not replace by brute force at these feature counts (e.g. ORB below 12000 features: every
     mode is brute force, so the guided and spatial-order kernels the helpers compile would never be used)."""
     from .config import MatcherConfig, Mode
-    from .matcher import _bf_wins
+    from .matcher.run import _bf_wins
     from .validation import config_from
 
     cfg = config_from(MatcherConfig, config)

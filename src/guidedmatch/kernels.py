@@ -467,7 +467,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     values, ``ncand[q]`` = the exact number of descriptor distances evaluated for query ``q`` and ``nvisit[q]`` =
     the strips it visited.
 
-    Work bound (issue 11): each query's walk is clipped to the part of its band inside the bounding box of the
+    Work bound: each query's walk is clipped to the part of its band inside the bounding box of the
     indexed points and jumps over empty strips (``fcols``/``frows`` = :func:`first_nonempty` of ``cols``/``rows``),
     so a query visits at most the occupied strips its band crosses -- never a number of strips set by the
     coordinate range of a (badly) transformed frame.
@@ -597,7 +597,7 @@ _FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 # inputs are cut into one contiguous chunk per Numba thread and the chunks run in Python threads
 # (:func:`_chunked`). That is the same schedule as a ``prange`` loop (Numba's default: one equal chunk per
 # thread), with identical results, but compiles 2-3x faster: the parfor lowering of the guided kernel alone took
-# 6 s of a first run's compilation, more than the single-threaded kernel it wraps (2.6 s) -- issue 14.
+# 6 s of a first run's compilation, more than the single-threaded kernel it wraps (2.6 s).
 #: fused GEMM post-processing + top-2 of a block of rows (:func:`top2_gemm` runs it on row chunks in threads)
 top2_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_top2_gemm_py, "top2_gemm_serial"))
 #: the k nearest centroids of a block of rows (:func:`topk_gemm` runs it on row chunks in threads)
@@ -702,7 +702,6 @@ def topk_gemm(q, centroids, cn, k, threads: int | None = None):
 
 # rows per GEMM block of topk_gemm: its (rows, nlist) float32 distances stay in a core's L2 (1024 x 637 = 2.6 MB);
 # 68k queries vs 637 centroids, one thread: 0.15 s in blocks of 512-2048 rows, 0.18-0.22 s as one block
-# (/tmp/s23/blk.py)
 _TOPK_BLOCK = 1024
 
 

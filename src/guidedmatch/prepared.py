@@ -1,4 +1,5 @@
-"""Per-image state reused across every pair an image takes part in (issue 11, "a cheap start on low-overlap pairs").
+"""Per-image state reused across every pair an image takes part in (a cheap unguided start, above all on low-overlap
+pairs).
 
 Matching one image against many (an SfM collection) repeats per-image work on every pair: descriptor conversion to
 the kernels' form (exact uint8 copies of byte-valued SIFT, packed 64-bit words of binary descriptors), squared norms
@@ -12,7 +13,7 @@ and no residual, which stores the same values in a quarter of the memory and giv
 ``nlist = nlist_factor * sqrt(N)`` k-means cells trained on at most ``train_per_list * nlist`` descriptors with a fixed
 seed, so it is deterministic; ``nprobe`` cells are searched per query. It is built lazily the first time the image is
 the second image of a pair whose unguided phase uses it, then kept. Measured on Herz-Jesus-P8 (8192 SIFT per image,
-2 cores, one run; ``/tmp/pairs/ivf_exp.py``): IVF (2 sqrt N = 181 cells, nprobe 4) searches all 8192 queries of a
+2 cores, one run): IVF (2 sqrt N = 181 cells, nprobe 4) searches all 8192 queries of a
 pair with 4.5-4.8 % of the N1*N2 distance evaluations (coarse + fine) in 0.06-0.15 s against 0.6-1.3 s for the
 exact GEMM top-2 in 64-query batches (0.10-0.12 of it), its nearest neighbour agrees with the exact one on 98.8-100 %
 of the ratio-test matches, and it builds in 0.09-0.19 s; HNSW (M = 32, efSearch 32) needs 0.54-1.16 of the GEMM
@@ -322,7 +323,7 @@ class UnguidedSearch:
         if self.kind == "ivf":
             # the index's coarse GEMMs (search2) run one per kernel thread: BLAS single-threaded meanwhile, as in
             # DenseKnn2 (two collection threads' unrelated 68k pairs: 1.3-1.6 s with BLAS's own threads on top,
-            # 0.84-0.95 s without; /tmp/s22/s2conc.py)
+            # 0.84-0.95 s without)
             from .bruteforce import blas_one_thread
 
             self._blas = blas_one_thread(load_scipy=False)
