@@ -366,7 +366,7 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
 
 
 def test_cache_is_cold_reads_the_numba_index():
-    from guidedmatch import jit, kernels
+    from guidedmatch import jit, kernels, matcher  # noqa: F401 - the matcher registers the cache probe with jit
 
     assert isinstance(jit.cache_is_cold("sift"), bool)
     assert jit._kernel_dtype("sift") == "uint8" and jit._kernel_dtype("orb") == "uint64"

@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pytest
 
+import guidedmatch.matcher  # noqa: F401 - registers the matcher's warm-ups with guidedmatch.jit
 from guidedmatch import jit
 from guidedmatch.features import Features
 
@@ -55,6 +56,7 @@ def test_forked_helpers_fill_the_cache_the_foreground_then_only_loads(tmp_path, 
     f2.save(tmp_path / "f2.npz")
     code = f"""
 import sys
+import guidedmatch.matcher
 from guidedmatch import jit
 from guidedmatch.features import Features
 f1, f2 = Features.load({str(tmp_path / 'f1.npz')!r}), Features.load({str(tmp_path / 'f2.npz')!r})
@@ -85,3 +87,30 @@ print("USED", sorted(n for m in (kernels, so) for n, v in vars(m).items() if get
     assert out.stdout.count("compiling Numba kernels") == 1
 
 
+
+
+def test_warmups_are_a_registry_the_matcher_fills():
+    """jit imports neither the matcher nor the kernels it warms up: the matcher registers every warm-up name at
+    import, and an unknown name is refused."""
+    import ast
+    import inspect
+
+    from guidedmatch.matcher import warmup
+
+    assert set(jit._WARMUPS) == set(jit.WARMUP_NAMES)
+    assert jit.registered_warmup("match") is warmup.warm_up_match
+    with pytest.raises(ValueError, match="unknown warm-up name"):
+        jit.register_warmup("nonsense", lambda: None)
+    imported = set()
+    for node in ast.walk(ast.parse(inspect.getsource(jit))):
+        if isinstance(node, ast.ImportFrom):
+            imported |= {f"{node.module or ''}.{a.name}".lstrip(".") for a in node.names} | {node.module or ""}
+        elif isinstance(node, ast.Import):
+            imported |= {a.name for a in node.names}
+    assert not {m for m in imported if any(k in m for k in ("matcher", "kernels", "spatial_order"))}, imported
+
+
+def test_registered_warmup_names_the_missing_registration(monkeypatch):
+    monkeypatch.setattr(jit, "_WARMUPS", {})
+    with pytest.raises(RuntimeError, match="import guidedmatch.matcher first"):
+        jit.warm_up(_features(10), _features(10), "bf")

@@ -92,6 +92,7 @@ from .filters import mutual_check, one_to_one
 from .models import GuidanceModels, Regions, search_regions
 from .run import match
 from .start import draw_order
+from . import warmup  # noqa: E402,F401 - registers the matcher's kernel warm-ups with guidedmatch.jit
 
 __all__ = ["match", "MatcherConfig", "Mode", "MODES", "GuidanceModels", "Regions", "search_regions", "draw_order",
            "one_to_one", "mutual_check"]
