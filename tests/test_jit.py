@@ -71,16 +71,16 @@ total = 0.0
 for mode in ("bf", "epi", "so", "so+epi", "so+epi+ia"):
     total += jit.warm_up(f1, f2, mode, dict(auto_bf=False), note=False)  # guided on these ~1k features too
 print("FOREGROUND_COMPILE", total)
-from guidedmatch import kernels
+from guidedmatch import exact, kernels
 from guidedmatch.spatial_order import _kernels as so
-print("USED", sorted(n for m in (kernels, so) for n, v in vars(m).items() if getattr(v, "overloads", None)))
+print("USED", sorted(n for m in (exact, kernels, so) for n, v in vars(m).items() if getattr(v, "overloads", None)))
 """
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "GUIDEDMATCH_BACKGROUND_COMPILE": "1"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "FOREGROUND_COMPILE 0.0" in out.stdout, out.stdout
     used = out.stdout.split("USED")[1]
-    for name in ("_guided_ser", "top2_gemm_serial", "counting_order", "_gap_kernel",
+    for name in ("_guided_ser", "topk_gemm_serial", "_refine", "counting_order", "_gap_kernel",
                  "_refine_window_nb", "_sweep_kendall", "_inversions_dense", "_window_fit_gaussian",
                  "_strip_layout", "search_regions_kernel"):
         assert f"'{name}'" in used  # the warm-ups did reach (load) every kernel: the check above is not vacuous

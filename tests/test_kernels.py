@@ -13,6 +13,7 @@ from threadpoolctl import threadpool_info
 
 from guidedmatch import kernels
 from guidedmatch.bruteforce import DenseKnn2, knn2
+from guidedmatch.exact import l2
 
 INF32 = np.float32(np.inf)
 
@@ -626,7 +627,7 @@ def test_dense_knn2_equals_knn2_and_reference(n2):
     assert _blas_threads() == before
     for arr in empty:
         assert arr.shape == (0,)
-    assert i1.dtype == np.int64 and s1.dtype == np.float32
+    assert i1.dtype == np.int64 and s1.dtype == np.float64  # exact squared distances (guidedmatch.exact)
     # reference: exact integer squared distances, ties to the lower index
     ref = ((q[:, None, :].astype(np.int64) - d2[None].astype(np.int64)) ** 2).sum(-1).astype(np.float64)
     for r in range(len(q)):
@@ -643,8 +644,8 @@ def test_dense_knn2_equals_knn2_and_reference(n2):
     (k1, kd1, k2, kd2), _ = knn2(q, d2)
     np.testing.assert_array_equal(i1, k1)
     np.testing.assert_array_equal(i2, k2)
-    np.testing.assert_allclose(s1, kd1.astype(np.float64) ** 2, rtol=1e-6)
-    np.testing.assert_allclose(s2, kd2.astype(np.float64) ** 2, rtol=1e-6)
+    np.testing.assert_array_equal(l2(s1), kd1)  # the same exact distances, bit for bit
+    np.testing.assert_array_equal(l2(s2), kd2)
 
 
 def test_dense_knn2_restores_blas_limits_after_an_exception():

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels
+from . import exact, kernels
 from .errors import InputError
 from .features import Features
 from .validation import check_choice, check_number
@@ -101,6 +101,7 @@ class PreparedImage:
         self.finite = True if self.binary else bool(np.isfinite(self.sqnorms).all())
         self._index = None
         self._coarse = None  # (centroids, their squared norms, the index they came from): search2's coarse step
+        self._list_ids = None  # each IVF list's descriptor indices (search2's rare exact fallback)
         self._lock = threading.Lock()
         self.index_build_s = 0.0
 
@@ -116,6 +117,7 @@ class PreparedImage:
         state = dict(self.__dict__)
         state["_index"] = None
         state["_coarse"] = None
+        state["_list_ids"] = None
         state.pop("_lock", None)
         return state
 
@@ -184,6 +186,7 @@ class PreparedImage:
             index.add(d)
         index.nprobe = min(int(c.nprobe), nlist)
         self._list_sizes = np.array([index.invlists.list_size(i) for i in range(nlist)], np.int64)
+        self._list_ids = None  # each list's descriptor indices, read on first need (exact_top's rare fallback)
         self.index_build_s = time.perf_counter() - t0
         return index
 
@@ -196,12 +199,28 @@ class PreparedImage:
             c = self._coarse = (cent, np.einsum("ij,ij->i", cent, cent), index)
         return c[0], c[1]
 
+    def _list_members(self, lists) -> np.ndarray:
+        """Descriptor indices stored in the index's ``lists`` (the domain of a query that probed them)."""
+        import faiss
+
+        if self._list_ids is None:
+            inv = self.index().invlists
+            self._list_ids = [faiss.rev_swig_ptr(inv.get_ids(i), int(n)).astype(np.int64) if n else
+                              np.zeros(0, np.int64) for i, n in enumerate(self._list_sizes)]
+        lists = [int(x) for x in np.asarray(lists).ravel() if x >= 0]
+        return np.concatenate([self._list_ids[x] for x in lists]) if lists else np.zeros(0, np.int64)
+
     def search2(self, queries: np.ndarray):
         """Approximate 2-NN of float ``queries (Q, D)`` in this image: ``(i1, s1, i2, s2, comparisons)``.
 
-        ``s1``, ``s2`` are exact squared L2 distances to the two nearest descriptors found in the ``nprobe`` probed
-        cells (``-1`` / ``inf`` when fewer than two were found); ``comparisons`` = the exact number of distance
-        evaluations: ``nlist`` centroid distances per query plus the size of every probed cell.
+        The probed cells: the ``nprobe`` centroids nearest each query, exactly (the GEMM's ``nprobe + 2`` nearest
+        recomputed and certified, :func:`guidedmatch.exact.exact_top`); then the :data:`~guidedmatch.exact.K` nearest
+        descriptors in those cells by faiss, recomputed and certified the same way (a near-tie at the K-th: every
+        descriptor of the probed cells exactly). ``s1``, ``s2`` are the exact squared L2 distances (float64) to the
+        two nearest descriptors in the probed cells (``-1`` / ``inf`` when fewer than two were found), the same on
+        every CPU and thread count given the index; ``comparisons`` = the number of distance evaluations of the
+        search: ``nlist`` centroid distances per query plus the size of every probed cell (the exact recompute of
+        a few of them is not counted again).
         """
         index = self.index()
         if index is None:
@@ -214,12 +233,22 @@ class PreparedImage:
         # faiss's flat quantizer: 68k queries vs 637 centroids 0.16-0.22 s, one thread. faiss took 0.57-0.64 s while
         # its bundled OpenBLAS ran generic kernels (_runtime.pin_faiss_blas), 0.18-0.21 s on the CPU's own; ours does
         # not depend on how faiss's BLAS was loaded (docs/pairs.md)
-        Iq, Dq = kernels.topk_gemm(q, *self._centroids(), min(int(index.nprobe), self.nlist), threads)
+        cent, cn = self._centroids()
+        nprobe = min(int(index.nprobe), self.nlist)
+        Ic, Dc = kernels.topk_gemm(q, cent, cn, min(nprobe + 2, self.nlist), threads)
+        qn = np.einsum("ij,ij->i", q, q)
+        Iq, Dq = exact.exact_top(q, cent, Ic, Dc, nprobe,
+                                 delta=exact.gemm_delta(qn, float(cn.max()), q.shape[1]))
+        Dq = Dq.astype(np.float32)
+        k = exact.K
         with _faiss_threads(threads):
-            D, I = index.search_preassigned(q, 2, Iq, Dq)
+            D, I = index.search_preassigned(q, k, Iq, Dq)
         comparisons = int(len(q)) * self.nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
+        I = I.astype(np.int64)
         D = np.where(I >= 0, D, np.inf).astype(np.float32)
-        return I[:, 0].astype(np.int64), D[:, 0], I[:, 1].astype(np.int64), D[:, 1], comparisons
+        top, sq = exact.exact_top(q, self.features.descriptors, I, D, 2, gamma=exact.sum_gamma(q.shape[1]),
+                                  domain=lambda i: self._list_members(Iq[i]))
+        return top[:, 0], sq[:, 0], top[:, 1], sq[:, 1], comparisons
 
 
 class _faiss_threads:

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from .. import exact
 from ..bruteforce import knn2
 from ..config import MatcherConfig
 from .models import GuidanceModels
@@ -76,10 +77,12 @@ class Filters:
     """Steps 6-7 of :class:`~guidedmatch.matcher.run._GuidedRun` (a mixin: the run's state lives in ``run.py``)."""
 
     def select(self, queries, i1, s1, s2, ncand) -> _Accepted:
-        """Ratio / single-candidate / max-distance tests on 2-NN results (``s1, s2``: squared L2 or Hamming)."""
+        """Ratio / single-candidate / max-distance tests on 2-NN results (``s1, s2``: exact squared L2 or Hamming
+        bits). Every decision is taken on the reported float32 distances (L2: the float32 square root of the exact
+        squared distance, :func:`guidedmatch.exact.l2`), which are the same on every CPU and thread count."""
         c = self.c
-        dist1 = s1 if self.binary else np.sqrt(s1)
-        dist2 = s2 if self.binary else np.sqrt(s2)
+        dist1 = np.asarray(s1, np.float32) if self.binary else exact.l2(s1)
+        dist2 = np.asarray(s2, np.float32) if self.binary else exact.l2(s2)
         keep = i1 >= 0
         single = keep & (ncand == 1)
         if c.ratio is not None:

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from .. import kernels
+from .. import exact, kernels
 from .models import GuidanceModels
 from .state import _Accepted, _Collected
 
@@ -58,15 +58,39 @@ class GuidedPass:
         vertical = np.abs(lines[:, 0]) > np.abs(lines[:, 1]) if use_band else np.zeros(len(q), bool)
         cols = self.strips(m, lines[~vertical], 0)
         rows = self.strips(m, lines[vertical], 1) if (1 in self.strip_cache or vertical.any()) else self.no_strips
-        i1, s1, _i2, s2, nc = kernels.guided_top2(q[o], self.kdesc1, self.kdesc2, lines[o], use_band,
-                                                  float(self.c.band_px), lo[o], hi[o], cols, rows)
+        i1, s1, i2, s2, nc, i3, s3 = kernels.guided_top2(q[o], self.kdesc1, self.kdesc2, lines[o], use_band,
+                                                         float(self.c.band_px), lo[o], hi[o], cols, rows,
+                                                         return_third=True)
         inv = np.empty_like(o)
         inv[o] = np.arange(len(o))
-        i1, s1, s2, nc = i1[inv], s1[inv], s2[inv], nc[inv]
+        i1, s1, i2, s2, nc, i3, s3 = i1[inv], s1[inv], i2[inv], s2[inv], nc[inv], i3[inv], s3[inv]
+        if not (self.binary or self.byte_exact):  # float L2 summed in a CPU-dependent order: recompute exactly
+            i1, s1, s2 = self.exact_top2(m, q, lines, lo, hi, use_band, np.stack([i1, i2, i3], 1),
+                                         np.stack([s1, s2, s3], 1))
         self.account(len(queries), int(nc.sum()))
         self.ncand.append(nc)
         self.no_region += int((nc == 0).sum())
         return self.select(q, i1, s1, s2, nc)
+
+    def exact_top2(self, m: GuidanceModels, q, lines, lo, hi, use_band: bool, cand, approx):
+        """Exact top 2 (:func:`guidedmatch.exact.exact_top`) of float queries ``q`` from the candidate kernel's best
+        three (``cand``, ``approx``: its vectorized float32 sums, relative error below
+        :func:`~guidedmatch.exact.sum_gamma`); a query whose third is too close to its second to certify is
+        recomputed over its whole search region (the kernel's predicate, evaluated on the aligned image-2 points).
+        Returns ``(i1, s1, s2)``, squared distances float64."""
+        band = float(self.c.band_px)
+        x, y = m.pts2a[:, 0], m.pts2a[:, 1]
+
+        def region(i):
+            ok = (x >= lo[i]) & (x <= hi[i])
+            if use_band:
+                a, b, c = lines[i]
+                ok &= np.abs(a * x + b * y + c) <= band
+            return np.flatnonzero(ok)
+
+        top, sq = exact.exact_top(self.d1[q], self.d2, cand, approx, 2, gamma=exact.sum_gamma(self.d1.shape[1]),
+                                  domain=region)
+        return top[:, 0], sq[:, 0], sq[:, 1]
 
     def final_pass(self, models: GuidanceModels | None, rest: np.ndarray, got: _Collected) -> None:
         """Step 5: every remaining image-1 feature in one vectorized call (unguided when no model was fitted)."""

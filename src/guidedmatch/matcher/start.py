@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from .. import kernels
-from ..bruteforce import knn2
+from ..bruteforce import _knn2_exact_sq, knn2
 from .models import GuidanceModels
 from .state import _Accepted, _Collected, _frames, _has_frames
 
@@ -235,10 +235,10 @@ class UnguidedStart:
             return self.select(queries, i1, s1, s2, np.minimum(found, len(self.d2)))
         if self.d2_sqnorms is None and not self.binary:
             self.d2_sqnorms = self.p2.sqnorms
-        (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms, checked=True)
-        # knn2 returns L2 distances; convert back to the kernel's squared form for select()
-        if not self.binary:
-            s1, s2 = s1 * s1, s2 * s2
+        if self.binary:
+            (i1, s1, _i2, s2), _ = knn2(self.d1[queries], self.d2, checked=True)
+        else:  # exact squared distances, as select() takes them
+            i1, s1, _i2, s2 = _knn2_exact_sq(self.d1[queries], self.d2, d2_sqnorms=self.d2_sqnorms)
         n2 = len(self.d2)
         self.account(len(queries), len(queries) * n2)
         nc = np.full(len(queries), n2, np.int64)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import jit, kernels
+from .. import exact, jit, kernels
 from ..config import MatcherConfig, Mode
 from ..validation import config_from
 from .models import search_regions
@@ -60,8 +60,8 @@ def cache_index():
 
 
 def precompile_guided(detector: str) -> None:
-    """Helper group ``"guided"``: the brute-force top-k (mode ``bf``, the unguided phase, the IVF coarse step) and,
-    for SIFT, the exact-uint8 descriptor check; then the guided candidate kernel of ``detector``'s descriptor kind and
+    """Helper group ``"guided"``: the brute-force top-k (mode ``bf``, the unguided phase, the IVF coarse step), the
+    exact recompute (:mod:`guidedmatch.exact`) and, for SIFT, the exact-uint8 descriptor check; then the guided candidate kernel of ``detector``'s descriptor kind and
     the strip index's counting sort (every guided mode). Direct calls on small arrays of the argument types the
     matcher passes."""
     rng = np.random.default_rng(0)
@@ -69,8 +69,9 @@ def precompile_guided(detector: str) -> None:
     desc = rng.integers(0, 256, (n, 128)).astype(np.float32)
     if detector == "sift":
         d = kernels.as_exact_uint8(desc)
-        kernels.top2_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), False)
-        kernels.topk_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), 4)  # IVF coarse
+        cand, approx = kernels.topk_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), 4)
+        exact.exact_top(desc, desc, cand, approx, 2, delta=1.0)  # the exact recompute of every float search
+        exact.exact_top_among(desc[0], desc, np.arange(n), 2)    # its rare fallback
     else:
         d = kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
         kernels.hamming_top2(d, d)
