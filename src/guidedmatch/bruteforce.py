@@ -30,7 +30,6 @@ from .errors import InputError
 from .results import MatchResult, MatchStats, empty_pairs
 
 DEFAULT_MEMORY_BUDGET_MB = 256.0
-SERIAL_TOP2_ROWS = 256  # GEMM blocks with fewer query rows are reduced single-threaded (see kernels.top2_gemm_serial)
 
 
 def check_descriptors(d1: np.ndarray, d2: np.ndarray, *, known_finite: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:

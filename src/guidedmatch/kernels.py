@@ -1,13 +1,14 @@
-"""Numba kernels for descriptor distances: top-2 search over dense blocks, Hamming brute force,
+"""Numba kernels for descriptor distances: top-k search over dense GEMM blocks, Hamming brute force,
 and the guided candidate kernel of the progressive matcher.
 
-All kernels return, per query, the best and second-best candidate (index and distance) and count the
-exact number of descriptor distances they evaluated (the paper's "# matches" column, Teng & Dong §IV-A).
-Distances returned by these kernels are **squared** L2 for float32 and byte-valued (uint8) descriptors
-(``top2_gemm``: ``max(|q|^2 + |t|^2 - 2 q.t, 0)`` in float32; ``guided_top2``: the sum of squared differences,
-exact integers for byte-valued rows) and Hamming bit counts for binary ones (uint64 words; not squared), all as
-float32. The callers take the square root for float descriptors: ``bruteforce.knn2`` and the matcher report L2
-(Euclidean, not squared), so ``MatchResult.distances`` are L2 or Hamming bits.
+The kernels return, per query, the best few candidates (index and distance) and count the exact number of
+descriptor distances they evaluated (the paper's "# matches" column, Teng & Dong §IV-A). Distances returned by
+these kernels are **squared** L2 for float32 and byte-valued (uint8) descriptors (``topk_gemm_serial``:
+``max(|q|^2 + |t|^2 - 2 q.t, 0)`` in float32; ``guided_top2``: the sum of squared differences, exact integers for
+byte-valued rows) and Hamming bit counts for binary ones (uint64 words; not squared), all as float32. Integer ones
+are exact; float ones depend on the summation order (the CPU's vector width, the BLAS, the thread split), so the
+callers recompute the best few exactly (:mod:`guidedmatch.exact`) and report L2 (Euclidean, not squared): the
+float32 square root of the exact squared distance. ``MatchResult.distances`` are L2 or Hamming bits.
 Index ``-1`` and distance ``+inf`` mean "no such candidate".
 """
 from __future__ import annotations
@@ -145,51 +146,16 @@ def _push3(d, j, b1, j1, b2, j2, b3, j3):
 
 
 # --------------------------------------------------------------------------- dense top-2
-def _top2_gemm_py(dot, nn2, qn, write_back):
-    """Top-2 of every row of squared L2 distances given as a GEMM block.
-
-    ``dot (R, C) float32`` = query·targetᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms. The squared distance
-    ``max((dot * -2 + nn2) + qn, 0)`` is formed element by element in float32 with exactly that rounding order
-    (no fast-math, so no contraction), i.e. bit-identical to the NumPy expression, but in one pass over the
-    block instead of four. With ``write_back`` the distances are also stored into ``dot`` (for column minima).
-    Returns ``(i1, d1, i2, d2)``: ``(R,) int64`` column indices and ``(R,) float32`` **squared** L2 distances (the
-    caller takes the square root); ties keep the lowest column index (like ``np.argmin``).
-    """
-    r, c = dot.shape
-    i1 = np.full(r, -1, np.int64)
-    i2 = np.full(r, -1, np.int64)
-    d1 = np.full(r, np.inf, np.float32)
-    d2 = np.full(r, np.inf, np.float32)
-    m2 = np.float32(-2.0)
-    zero = np.float32(0.0)
-    for i in range(r):
-        b1 = np.float32(np.inf)
-        b2 = np.float32(np.inf)
-        j1 = -1
-        j2 = -1
-        row = dot[i]
-        q = qn[i]
-        for j in range(c):
-            v = max((row[j] * m2 + nn2[j]) + q, zero)
-            if write_back:
-                row[j] = v
-            b1, j1, b2, j2 = _push(v, j, b1, j1, b2, j2)
-        i1[i] = j1
-        i2[i] = j2
-        d1[i] = b1
-        d2[i] = b2
-    return i1, d1, i2, d2
-
-
 def _topk_gemm_py(dot, nn2, qn, k):
     """The ``k`` smallest squared L2 distances of every row of a GEMM block, ascending: ``(idx (R, k) int64,
     dist (R, k) float32)`` (``-1`` / ``inf`` past the number of columns).
 
-    ``dot (R, C) float32`` = query·centroidᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms; the distance is
+    ``dot (R, C) float32`` = query·targetᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms; the distance is
     ``max((qn + nn2) - 2 dot, 0)`` in float32, in that order (faiss's ``exhaustive_L2sqr_blas``). Equal distances
-    keep the lower column index. For the coarse step of an IVF search (:meth:`guidedmatch.prepared.PreparedImage.
-    search2`), where ``k`` = nprobe is a few and a row has a few hundred columns: one comparison per column, an
-    insertion only when the column beats the current ``k``-th.
+    keep the lower column index. ``k`` is a few (the IVF coarse step's nprobe + 2, brute force's
+    :data:`guidedmatch.exact.K`): one comparison per column, an insertion only when the column beats the current
+    ``k``-th. The values are approximate (float32 GEMM); the callers recompute the winners exactly
+    (:mod:`guidedmatch.exact`).
     """
     r, c = dot.shape
     idx = np.full((r, k), -1, np.int64)
@@ -620,9 +586,8 @@ _FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 # (:func:`_chunked`). That is the same schedule as a ``prange`` loop (Numba's default: one equal chunk per
 # thread), with identical results, but compiles 2-3x faster: the parfor lowering of the guided kernel alone took
 # 6 s of a first run's compilation, more than the single-threaded kernel it wraps (2.6 s).
-#: fused GEMM post-processing + top-2 of a block of rows (:func:`top2_gemm` runs it on row chunks in threads)
-top2_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_top2_gemm_py, "top2_gemm_serial"))
-#: the k nearest centroids of a block of rows (:func:`topk_gemm` runs it on row chunks in threads)
+#: fused GEMM post-processing + the k smallest of a block of rows (the k nearest centroids of the IVF coarse step,
+#: the k nearest candidates of brute force: :func:`topk_gemm`, :func:`topk_block` run it on row chunks in threads)
 topk_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_topk_gemm_py, "topk_gemm_serial"))
 # The guided kernel is compiled without fast-math for every descriptor kind: its band test |a x + b y + c| <= band is
 # evaluated with plain IEEE rounding, bit for bit as NumPy does, on every CPU (fast-math would let LLVM contract it
@@ -692,15 +657,6 @@ def _join_rows(parts: list):
 def _chunked_rows(fn, n: int, min_rows: int, threads: int | None = None):
     """:func:`_chunked` for a kernel returning a tuple of per-row arrays: the chunks' arrays joined in row order."""
     return _join_rows(_chunked(fn, n, min_rows, threads))
-
-
-def top2_gemm(dot, nn2, qn, write_back):
-    """:func:`top2_gemm_serial` on one chunk of rows per thread (large blocks); same arguments and results."""
-    return _chunked_rows(lambda a, b: top2_gemm_serial(dot[a:b], nn2, qn[a:b], write_back), dot.shape[0], 256)
-
-
-top2_gemm.__doc__ = (_top2_gemm_py.__doc__ or "") + """
-    Large blocks (>= 256 rows) are cut into one chunk of rows per Numba thread, run in threads (``nogil``)."""
 
 
 def topk_block(dot, nn2, qn, k):

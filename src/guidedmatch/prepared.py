@@ -299,8 +299,8 @@ class UnguidedSearch:
     Hamming top-2 of binary descriptors. With ``kind="ivf"`` and ``exact_budget > 0`` the first queries are searched
     exactly (GEMM) until ``exact_budget`` comparisons are spent, the index only after (built then when image 2 was not
     prepared; the build time is in ``index_build_s``): ski-rental, the same searches whether or not the index exists.
-    :meth:`query` returns ``(i1, s1, i2, s2, comparisons)`` with squared L2 distances (float) or Hamming bit counts
-    (binary), i.e. the candidate kernel's distance form.
+    :meth:`query` returns ``(i1, s1, i2, s2, comparisons)`` with exact squared L2 distances (float64,
+    :mod:`guidedmatch.exact`) or Hamming bit counts (binary).
     """
 
     KINDS = ("ivf", "gemm", "popcount")
