@@ -308,7 +308,7 @@ def test_match_reports_compilation_apart_from_time_s(small_scene_features, monke
     def fake_monitor(note=True, stream=None):
         yield Fake(note=False)
 
-    monkeypatch.setattr(matcher, "compile_monitor", fake_monitor)
+    monkeypatch.setattr(matcher.run, "compile_monitor", fake_monitor)
     f1, f2 = small_scene_features
     t = _time.perf_counter()
     res = matcher.match(f1, f2, "so+epi+ia")
@@ -366,7 +366,7 @@ def test_background_compile_never_leaves_helpers_running(monkeypatch):
 
 
 def test_cache_is_cold_reads_the_numba_index():
-    from guidedmatch import jit, kernels
+    from guidedmatch import jit, kernels, matcher  # noqa: F401 - the matcher registers the cache probe with jit
 
     assert isinstance(jit.cache_is_cold("sift"), bool)
     assert jit._kernel_dtype("sift") == "uint8" and jit._kernel_dtype("orb") == "uint64"

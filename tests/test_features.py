@@ -99,7 +99,7 @@ def test_load_image_decodes_grey_files_with_the_decoders_conversion(tmp_path):
     np.testing.assert_array_equal(load_image(cv2.imread(str(path), cv2.IMREAD_COLOR)), converted)  # arrays: cvtColor
 
 
-# ------------------------------------------------------------------ strict image reading (issue 14)
+# ------------------------------------------------------------------ strict image reading
 def _encoded(ext, rng):
     import cv2
 
@@ -149,7 +149,7 @@ def test_missing_image_is_both_image_read_error_and_file_not_found(tmp_path):
         load_image(tmp_path / "empty.png")
 
 
-# ------------------------------------------------------------------ max_image_size, memory guard, options (issue 14)
+# ------------------------------------------------------------------ max_image_size, memory guard, options
 def _disc_image(rng, w=1200, h=900, r=9):
     import cv2
 
@@ -201,7 +201,7 @@ def test_memory_guard_refuses_with_a_size_that_fits(monkeypatch):
 
 
 def test_memory_estimate_matches_the_measured_sift_peaks():
-    # peaks measured by benchmarks/detect_memory.py (VmHWM; OpenCV 5.0) and in issue 14 (6000x4500: 6.3 GB)
+    # peaks measured by benchmarks/detect_memory.py (VmHWM; OpenCV 5.0) and by hand (6000x4500: 6.3 GB)
     for (w, h), measured in (((1000, 750), 179e6), ((3200, 2400), 1806e6), ((6000, 4500), 6.3e9)):
         est = estimate_detect_memory(w, h, "sift")
         assert measured <= est <= 1.1 * measured + (64 << 20)

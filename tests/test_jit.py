@@ -1,4 +1,4 @@
-"""guidedmatch.jit: first-run compilation in forked helpers, warm-up, which kernels a run needs (issue 14)."""
+"""guidedmatch.jit: first-run compilation in forked helpers, warm-up, which kernels a run needs."""
 import os
 import subprocess
 import sys
@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pytest
 
+import guidedmatch.matcher  # noqa: F401 - registers the matcher's warm-ups with guidedmatch.jit
 from guidedmatch import jit
 from guidedmatch.features import Features
 
@@ -55,6 +56,7 @@ def test_forked_helpers_fill_the_cache_the_foreground_then_only_loads(tmp_path, 
     f2.save(tmp_path / "f2.npz")
     code = f"""
 import sys
+import guidedmatch.matcher
 from guidedmatch import jit
 from guidedmatch.features import Features
 f1, f2 = Features.load({str(tmp_path / 'f1.npz')!r}), Features.load({str(tmp_path / 'f2.npz')!r})
@@ -69,19 +71,46 @@ total = 0.0
 for mode in ("bf", "epi", "so", "so+epi", "so+epi+ia"):
     total += jit.warm_up(f1, f2, mode, dict(auto_bf=False), note=False)  # guided on these ~1k features too
 print("FOREGROUND_COMPILE", total)
-from guidedmatch import kernels
+from guidedmatch import exact, kernels
 from guidedmatch.spatial_order import _kernels as so
-print("USED", sorted(n for m in (kernels, so) for n, v in vars(m).items() if getattr(v, "overloads", None)))
+print("USED", sorted(n for m in (exact, kernels, so) for n, v in vars(m).items() if getattr(v, "overloads", None)))
 """
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "GUIDEDMATCH_BACKGROUND_COMPILE": "1"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "FOREGROUND_COMPILE 0.0" in out.stdout, out.stdout
     used = out.stdout.split("USED")[1]
-    for name in ("_guided_ser", "top2_gemm_serial", "counting_order", "_gap_kernel",
+    for name in ("_guided_ser", "topk_gemm_serial", "_refine", "counting_order", "_gap_kernel",
                  "_refine_window_nb", "_sweep_kendall", "_inversions_dense", "_window_fit_gaussian",
                  "_strip_layout", "search_regions_kernel"):
         assert f"'{name}'" in used  # the warm-ups did reach (load) every kernel: the check above is not vacuous
     assert out.stdout.count("compiling Numba kernels") == 1
 
 
+
+
+def test_warmups_are_a_registry_the_matcher_fills():
+    """jit imports neither the matcher nor the kernels it warms up: the matcher registers every warm-up name at
+    import, and an unknown name is refused."""
+    import ast
+    import inspect
+
+    from guidedmatch.matcher import warmup
+
+    assert set(jit._WARMUPS) == set(jit.WARMUP_NAMES)
+    assert jit.registered_warmup("match") is warmup.warm_up_match
+    with pytest.raises(ValueError, match="unknown warm-up name"):
+        jit.register_warmup("nonsense", lambda: None)
+    imported = set()
+    for node in ast.walk(ast.parse(inspect.getsource(jit))):
+        if isinstance(node, ast.ImportFrom):
+            imported |= {f"{node.module or ''}.{a.name}".lstrip(".") for a in node.names} | {node.module or ""}
+        elif isinstance(node, ast.Import):
+            imported |= {a.name for a in node.names}
+    assert not {m for m in imported if any(k in m for k in ("matcher", "kernels", "spatial_order"))}, imported
+
+
+def test_registered_warmup_names_the_missing_registration(monkeypatch):
+    monkeypatch.setattr(jit, "_WARMUPS", {})
+    with pytest.raises(RuntimeError, match="import guidedmatch.matcher first"):
+        jit.warm_up(_features(10), _features(10), "bf")

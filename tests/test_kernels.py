@@ -13,6 +13,7 @@ from threadpoolctl import threadpool_info
 
 from guidedmatch import kernels
 from guidedmatch.bruteforce import DenseKnn2, knn2
+from guidedmatch.exact import l2
 
 INF32 = np.float32(np.inf)
 
@@ -468,7 +469,7 @@ def test_counting_order_is_stable_argsort(key, extra):
     assert len(offsets) == nbins + 1
 
 
-# --------------------------------------------------------------------------- top2_gemm
+# --------------------------------------------------------------------------- GEMM top-k
 def gemm_block(r, c, ties, seed):
     """A GEMM block ``dot (r, c)`` with column and row squared norms; ``ties``: small integers (many equal
     distances, and clamped (zero) ones)."""
@@ -482,29 +483,6 @@ def gemm_block(r, c, ties, seed):
         nn2 = rng.uniform(0, 50, c).astype(np.float32)
         qn = rng.uniform(0, 50, r).astype(np.float32)
     return dot, nn2, qn
-
-
-@settings(max_examples=80, deadline=None)
-@given(r=st.integers(0, 12), c=st.integers(0, 40), ties=st.booleans(), serial=st.booleans(),
-       write_back=st.booleans(), seed=st.integers(0, 2**32 - 1))
-def test_top2_gemm_bit_identical_to_numpy(r, c, ties, serial, write_back, seed):
-    dot, nn2, qn = gemm_block(r, c, ties, seed)
-    ref = np.maximum((dot * np.float32(-2.0) + nn2[None, :]) + qn[:, None], 0)
-    assert ref.dtype == np.float32
-    blk = dot.copy()
-    fn = kernels.top2_gemm_serial if serial else kernels.top2_gemm
-    i1, d1, i2, d2 = fn(blk, nn2, qn, write_back)
-    assert i1.dtype == np.int64 and d1.dtype == np.float32 and i1.shape == (r,)
-    for row in range(r):
-        e1, e2 = ref_top2(np.arange(c), ref[row])
-        assert (i1[row], i2[row]) == (e1, e2)
-        for got, e in ((d1[row], e1), (d2[row], e2)):
-            want = ref[row, e] if e >= 0 else INF32
-            assert np.float32(got).view(np.uint32) == np.float32(want).view(np.uint32)
-    if write_back:
-        np.testing.assert_array_equal(blk.view(np.uint32), ref.view(np.uint32))
-    else:
-        np.testing.assert_array_equal(blk.view(np.uint32), dot.view(np.uint32))
 
 
 # --------------------------------------------------------------------------- topk_gemm (IVF coarse step)
@@ -615,7 +593,7 @@ def test_dense_knn2_equals_knn2_and_reference(n2):
     q = rng.integers(0, 6, (23, 8)).astype(np.float32)
     q[:3] = d2[-3:] if n2 >= 3 else q[:3]  # exact duplicates in the last chunk
     # load Numba (which may load another BLAS) before recording the thread limits
-    kernels.top2_gemm_serial(np.zeros((1, 1), np.float32), np.zeros(1, np.float32), np.zeros(1, np.float32), False)
+    kernels.topk_gemm_serial(np.zeros((1, 1), np.float32), np.zeros(1, np.float32), np.zeros(1, np.float32), 2)
     before = _blas_threads()
     with DenseKnn2(d2, threads=2) as dense:
         assert all(t == 1 for _, t in _blas_threads())
@@ -626,7 +604,7 @@ def test_dense_knn2_equals_knn2_and_reference(n2):
     assert _blas_threads() == before
     for arr in empty:
         assert arr.shape == (0,)
-    assert i1.dtype == np.int64 and s1.dtype == np.float32
+    assert i1.dtype == np.int64 and s1.dtype == np.float64  # exact squared distances (guidedmatch.exact)
     # reference: exact integer squared distances, ties to the lower index
     ref = ((q[:, None, :].astype(np.int64) - d2[None].astype(np.int64)) ** 2).sum(-1).astype(np.float64)
     for r in range(len(q)):
@@ -643,13 +621,13 @@ def test_dense_knn2_equals_knn2_and_reference(n2):
     (k1, kd1, k2, kd2), _ = knn2(q, d2)
     np.testing.assert_array_equal(i1, k1)
     np.testing.assert_array_equal(i2, k2)
-    np.testing.assert_allclose(s1, kd1.astype(np.float64) ** 2, rtol=1e-6)
-    np.testing.assert_allclose(s2, kd2.astype(np.float64) ** 2, rtol=1e-6)
+    np.testing.assert_array_equal(l2(s1), kd1)  # the same exact distances, bit for bit
+    np.testing.assert_array_equal(l2(s2), kd2)
 
 
 def test_dense_knn2_restores_blas_limits_after_an_exception():
     d2 = np.zeros((3000, 4), np.float32)
-    kernels.top2_gemm_serial(np.zeros((1, 1), np.float32), np.zeros(1, np.float32), np.zeros(1, np.float32), False)
+    kernels.topk_gemm_serial(np.zeros((1, 1), np.float32), np.zeros(1, np.float32), np.zeros(1, np.float32), 2)
     before = _blas_threads()
     with pytest.raises(RuntimeError):
         with DenseKnn2(d2, threads=2):
@@ -670,7 +648,7 @@ def test_band_edge_point_exact_for_integer_descriptors():
     assert r[4][0] == 1 and r[0][0] == 0
 
 
-# --------------------------------------------------------------------------- work bound (issue 11)
+# --------------------------------------------------------------------------- work bound
 def _occupied_strips_crossed(S, pts2, line, band, lo, hi):
     """Reference bound: the occupied strips of ``S`` that hold a point whose x lies in [lo, hi] and whose other
     coordinate lies within the band's extent over the strip -- i.e. strips the band really crosses inside the

@@ -235,7 +235,7 @@ def test_band_only_rescue_matches_outside_the_window_only_in_the_band(scene_and_
     assert inside_d.all()
 
 
-# ------------------------------------------------------------------------------ issue 11: verdict, start, prepared
+# ------------------------------------------------------------------------------ verdict, unguided start, prepared images
 from guidedmatch.prepared import prepare  # noqa: E402
 
 GUIDED = MatcherConfig(auto_bf=False)  # the rendered test scenes have < 2000 features: keep guidance on
@@ -651,7 +651,7 @@ def test_planar_rule_keeps_the_matches_off_a_dominant_plane():
     inliers >= h_ratio * F inliers): a 3-D scene with a dominant plane keeps its off-plane matches."""
     from types import SimpleNamespace
 
-    from guidedmatch.matcher import _planar
+    from guidedmatch.matcher.filters import _planar
 
     rng = np.random.default_rng(0)
     K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
@@ -706,8 +706,8 @@ def test_frame_hypotheses_recover_a_low_inlier_ratio_pair(monkeypatch):
     12 %-correct evidence that RANSAC alone calls "no-overlap", and the first guiding F must pass the verdict's rule
     (else the verdict's F guides). Each half is necessary: without the rule the pair returns nothing; with the
     search but a first F fitted on all the evidence, it follows a wrong F."""
-    import guidedmatch.matcher as matcher_module
-    from guidedmatch.matcher import _GuidedRun
+    import guidedmatch.matcher.models as matcher_module
+    from guidedmatch.matcher.run import _GuidedRun
 
     f1, f2, true_j = _low_ratio_features()
     n_true = len(true_j)
@@ -749,7 +749,7 @@ def test_ransac_draws_formula(w):
     """``_ransac_draws``: draws for 99.9 % confidence of one all-inlier 7-point sample, against the direct product."""
     from types import SimpleNamespace
 
-    from guidedmatch.matcher import _ransac_draws
+    from guidedmatch.matcher.models import _ransac_draws
 
     m = 1000
     v = SimpleNamespace(evidence=dict(F_inliers_raw=int(round(w * m)), num_evidence=m))
@@ -765,7 +765,8 @@ def test_ransac_draws_formula(w):
        outside=st.sampled_from(["drop", "band"]), degenerate=st.booleans())
 def test_search_regions_kernel_equals_the_numpy_formulation(n, good, seed, with_f, outside, degenerate):
     """The nogil search-region kernel against admissible_x_ranges + map_points (exact: same arithmetic)."""
-    from guidedmatch.matcher import _search_regions_numpy, search_regions
+    from guidedmatch.matcher import search_regions
+    from guidedmatch.matcher.models import _search_regions_numpy
     from guidedmatch.spatial_order import fit_spatial_order
     from guidedmatch.testing.permutations import generate_permutation
 

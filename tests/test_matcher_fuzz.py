@@ -1,4 +1,4 @@
-"""Fuzz tests of ``match`` (issue 14): random and degenerate feature sets never raise, and results are consistent.
+"""Fuzz tests of ``match``: random and degenerate feature sets never raise, and results are consistent.
 
 Degenerate layouts: all points collinear, all identical, two tight clusters, tiny images, huge coordinates; the
 descriptors of image 2 are a noisy permutation of image 1's (so the ratio test passes and models get fitted on the

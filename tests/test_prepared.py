@@ -1,4 +1,4 @@
-"""Tests of guidedmatch.prepared (per-image state reused across pairs, issue 11)."""
+"""Tests of guidedmatch.prepared (per-image state reused across pairs)."""
 import pickle
 
 import numpy as np

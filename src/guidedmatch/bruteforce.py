@@ -3,14 +3,14 @@
 Every image-1 descriptor is compared with every image-2 descriptor: exactly ``N1 * N2`` distance
 evaluations, reported in ``stats.comparisons``.
 
-* Float descriptors: the squared L2 distance through blocked GEMM, ``||a||^2 + ||b||^2 - 2 a.b`` clamped at 0, in
-  float32 (:func:`~guidedmatch.kernels.top2_gemm`), then the square root of the two nearest: :func:`knn2` and the
-  match result report L2 (Euclidean, **not** squared).
+* Float descriptors: the ``K`` (:data:`guidedmatch.exact.K`) nearest by the squared L2 distance through blocked
+  GEMM, ``||a||^2 + ||b||^2 - 2 a.b`` clamped at 0, in float32 (:func:`~guidedmatch.kernels.topk_block`), then
+  their distances recomputed exactly in a fixed order and the top 2 taken on those, the candidate set certified
+  against the GEMM's error bound (:mod:`guidedmatch.exact`): neighbours and distances are the same on every CPU,
+  BLAS and thread count. :func:`knn2` and the match result report L2 (Euclidean, **not** squared), the float32
+  square root of the exact float64 squared distance.
   Query rows are processed in blocks sized so the block's distance matrix stays under
   ``memory_budget_mb`` (default 256 MB; at 150k x 150k that is 447 query rows per block).
-  With integer-valued descriptors (SIFT's are) every partial sum is an exact float32 integer below
-  2^24, so distances and neighbours equal the exact ones; for arbitrary floats they agree to float32
-  rounding.
 * Binary descriptors: Hamming distance (bits, as float32) by 64-bit popcount in a Numba kernel (no extra memory).
 
 Ratio test (Lowe), on these L2 (not squared) or Hamming distances: a match ``(i, j1)`` is kept when
@@ -25,12 +25,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import kernels
+from . import exact, kernels
 from .errors import InputError
 from .results import MatchResult, MatchStats, empty_pairs
 
 DEFAULT_MEMORY_BUDGET_MB = 256.0
-SERIAL_TOP2_ROWS = 256  # GEMM blocks with fewer query rows are reduced single-threaded (see kernels.top2_gemm_serial)
 
 
 def check_descriptors(d1: np.ndarray, d2: np.ndarray, *, known_finite: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -68,8 +67,10 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
     """Exact 2-NN of each ``d1`` row among ``d2`` rows.
 
     Returns ``(i1, dist1, i2, dist2)`` arrays of length N1 (index -1 / distance inf when missing) and,
-    when ``want_column_best``, ``(col_i, col_d)``: for each ``d2`` row its nearest ``d1`` row. Distances are
-    ``float32`` L2 (square root taken, not squared) for float descriptors, Hamming bits for binary ones.
+    when ``want_column_best``, ``(col_i, col_d)``: for each ``d2`` row its nearest ``d1`` row (for float descriptors
+    the same exact search the other way round). Distances are ``float32`` L2 (square root of the exact squared
+    distance, :mod:`guidedmatch.exact`) for float descriptors, Hamming bits for binary ones; equal distances: the
+    lower index first.
     ``d2_sqnorms`` (float descriptors: ``(N2,)`` squared norms of ``d2``) and ``checked=True`` (inputs already
     validated by :func:`check_descriptors`) let a caller that queries the same ``d2`` repeatedly skip that work.
     """
@@ -77,40 +78,47 @@ def knn2(d1: np.ndarray, d2: np.ndarray, *, memory_budget_mb: float = DEFAULT_ME
         binary = d1.dtype == np.uint8
     else:
         d1, d2, binary = check_descriptors(d1, d2)
-    n1, n2 = len(d1), len(d2)
     if binary:
         q, t = kernels.pack_bits_u64(d1), kernels.pack_bits_u64(d2)
         out = kernels.hamming_top2(q, t)
         col = kernels.hamming_col_best(q, t) if want_column_best else None
         return out, col
+    i1, s1, i2, s2 = _knn2_exact_sq(d1, d2, memory_budget_mb, d2_sqnorms)
+    out = (i1, exact.l2(s1), i2, exact.l2(s2))
+    col = None
+    if want_column_best:
+        (ci, cd, _, _), _ = knn2(d2, d1, memory_budget_mb=memory_budget_mb, checked=True)
+        col = (ci, cd)
+    return out, col
+
+
+def _knn2_exact_sq(d1: np.ndarray, d2: np.ndarray, memory_budget_mb: float = DEFAULT_MEMORY_BUDGET_MB,
+                   d2_sqnorms: np.ndarray | None = None):
+    """Float descriptors: exact 2-NN ``(i1, s1, i2, s2)`` of each ``d1`` row among ``d2`` rows, **squared** float64
+    distances: the :data:`~guidedmatch.exact.K` nearest of blocked float32 GEMMs, recomputed exactly and certified
+    (:func:`guidedmatch.exact.exact_top`)."""
+    n1, n2 = len(d1), len(d2)
     i1 = np.full(n1, -1, np.int64)
     i2 = np.full(n1, -1, np.int64)
-    s1 = np.full(n1, np.inf, np.float32)
-    s2 = np.full(n1, np.inf, np.float32)
-    col_i = np.full(n2, -1, np.int64)
-    col_s = np.full(n2, np.inf, np.float32)
+    s1 = np.full(n1, np.inf, np.float64)
+    s2 = np.full(n1, np.inf, np.float64)
     if n1 and n2:
         nn2 = np.einsum("ij,ij->i", d2, d2) if d2_sqnorms is None else d2_sqnorms
+        tn_max = float(np.max(nn2))
         rows = block_rows(n2, memory_budget_mb)
         buf = np.empty((min(rows, n1), n2), np.float32)
+        k = min(exact.K, n2)
         for a in range(0, n1, rows):
             b = min(n1, a + rows)
             blk = buf[: b - a]
             q = d1[a:b]
             np.matmul(q, d2.T, out=blk)
-            # squared distances max(-2 q·t + |t|² + |q|², 0), formed and reduced to the top 2 in one pass
-            top2 = kernels.top2_gemm if b - a >= SERIAL_TOP2_ROWS else kernels.top2_gemm_serial
-            j1, v1, j2, v2 = top2(blk, nn2, np.einsum("ij,ij->i", q, q), want_column_best)
-            i1[a:b], s1[a:b], i2[a:b], s2[a:b] = j1, v1, j2, v2
-            if want_column_best:
-                cb = np.argmin(blk, axis=0)
-                cv = blk[cb, np.arange(n2)]
-                better = cv < col_s
-                col_s[better] = cv[better]
-                col_i[better] = cb[better] + a
-    out = (i1, np.sqrt(s1), i2, np.sqrt(s2))
-    col = (col_i, np.sqrt(col_s)) if want_column_best else None
-    return out, col
+            qn = np.einsum("ij,ij->i", q, q)
+            # the K nearest by max(-2 q.t + |t|^2 + |q|^2, 0) in float32 (one pass), then exact and certified
+            cand, approx = kernels.topk_block(blk, nn2, qn, k)
+            idx, sq = exact.exact_top(q, d2, cand, approx, 2, delta=exact.gemm_delta(qn, tn_max, d1.shape[1]))
+            i1[a:b], s1[a:b], i2[a:b], s2[a:b] = idx[:, 0], sq[:, 0], idx[:, 1], sq[:, 1]
+    return i1, s1, i2, s2
 
 
 _CONTROLLER: list = [None, -1]  # [ThreadpoolController, len(sys.modules) when it was built]
@@ -155,8 +163,11 @@ class DenseKnn2:
     single-threaded BLAS calls leave no spinning workers behind.
 
     Use as a context manager: while it is open, BLAS libraries loaded by the process are limited to one thread
-    (``threadpoolctl``; process-wide, restored on exit). ``query(q)`` returns ``(i1, s1, i2, s2)`` with squared
-    L2 distances, identical to :func:`knn2` up to float32 GEMM rounding.
+    (``threadpoolctl``; process-wide, restored on exit). ``query(q)`` returns ``(i1, s1, i2, s2)`` with exact
+    squared L2 distances (float64): each chunk hands over its :data:`~guidedmatch.exact.K` nearest by its GEMM, the
+    best K of all chunks are recomputed exactly and certified (:func:`guidedmatch.exact.exact_top`; a candidate left
+    out by a chunk is no nearer than that chunk's K-th, hence than the merged K-th), so the result is :func:`knn2`'s,
+    bit for bit, whatever the number of chunks (threads) or the BLAS.
     """
 
     def __init__(self, d2: np.ndarray, d2_sqnorms: np.ndarray | None = None, threads: int | None = None):
@@ -166,6 +177,7 @@ class DenseKnn2:
         k = max(1, min(int(threads or kernels.num_threads()), max(1, n2 // 1024)))
         cuts = np.linspace(0, n2, k + 1).astype(np.int64)
         self.chunks = [(self.d2[a:b], nn2[a:b], int(a)) for a, b in zip(cuts[:-1], cuts[1:])]
+        self.tn_max = float(np.max(nn2)) if n2 else 0.0
         self._pool = None
         self._limit = None
 
@@ -186,26 +198,29 @@ class DenseKnn2:
     @staticmethod
     def _chunk(q, qn, chunk):
         t, tn, off = chunk
-        i1, s1, i2, s2 = kernels.top2_gemm_serial(q @ t.T, tn, qn, False)
-        return i1 + np.where(i1 >= 0, off, 0), s1, i2 + np.where(i2 >= 0, off, 0), s2
+        idx, dist = kernels.topk_gemm_serial(q @ t.T, tn, qn, min(exact.K, len(t)))
+        return np.where(idx >= 0, idx + off, -1), dist
 
     def query(self, q: np.ndarray):
         q = np.ascontiguousarray(q, np.float32)
+        nq = len(q)
+        if nq == 0 or len(self.d2) == 0:
+            e = np.full(nq, -1, np.int64), np.full(nq, np.inf, np.float64)
+            return e[0], e[1], e[0].copy(), e[1].copy()
         qn = np.einsum("ij,ij->i", q, q)
         if self._pool is None:
             parts = [self._chunk(q, qn, c) for c in self.chunks]
         else:
             parts = list(self._pool.map(lambda c: self._chunk(q, qn, c), self.chunks))
-        if len(parts) == 1:
-            return parts[0]
-        # exact merge: the best two of all chunks' best two, by distance then index
-        idx = np.concatenate([np.stack([p[0], p[2]], 1) for p in parts], axis=1)
-        dist = np.concatenate([np.stack([p[1], p[3]], 1) for p in parts], axis=1)
-        big = np.where(idx >= 0, idx, np.iinfo(np.int64).max)
-        o = np.lexsort((big, dist), axis=-1)[:, :2]
-        r = np.arange(len(q))[:, None]
-        i, d = idx[r, o], dist[r, o]
-        return i[:, 0], d[:, 0], i[:, 1], d[:, 1]
+        idx = np.concatenate([p[0] for p in parts], axis=1)
+        dist = np.concatenate([p[1] for p in parts], axis=1)
+        if len(parts) > 1:  # the best K of all chunks' best K, by distance then index
+            big = np.where(idx >= 0, idx, np.iinfo(np.int64).max)
+            o = np.lexsort((big, dist), axis=-1)[:, :exact.K]
+            r = np.arange(nq)[:, None]
+            idx, dist = idx[r, o], dist[r, o]
+        top, sq = exact.exact_top(q, self.d2, idx, dist, 2, delta=exact.gemm_delta(qn, self.tn_max, q.shape[1]))
+        return top[:, 0], sq[:, 0], top[:, 1], sq[:, 1]
 
 
 def select_matches(i1, dist1, dist2, *, ratio: float | None = 0.8, max_distance: float | None = None,
@@ -260,7 +275,8 @@ def match_bruteforce(d1, d2, *, ratio: float | None = 0.8, mutual: bool = False,
     t0 = time.perf_counter()
     d1c, d2c, binary = check_descriptors(d1, d2)
     n1, n2 = len(d1c), len(d2c)
-    (i1, s1, _i2, s2), col = knn2(d1c, d2c, memory_budget_mb=memory_budget_mb, want_column_best=mutual)
+    (i1, s1, _i2, s2), col = knn2(d1c, d2c, memory_budget_mb=memory_budget_mb, want_column_best=mutual,
+                                  checked=True)
     pairs, dist, keep = select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance,
                                        mutual_best=col[0] if mutual else None)
     dropped_mutual = int(select_matches(i1, s1, s2, ratio=ratio, max_distance=max_distance)[2].sum() - keep.sum()) \

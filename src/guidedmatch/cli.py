@@ -152,8 +152,8 @@ def timed_match(f1, f2, mode, config=None, *, return_models=False, warm: bool = 
     """``match`` with its Numba kernels warmed up first (untimed; ``warm=False``: the caller already did); returns
     ``(match's return value, matching_seconds, compile_seconds)`` -- ``match`` itself reports any compilation left
     in the timed run apart from ``stats.time_s`` (``stats.details["jit_compile_s"]``)."""
+    from .matcher import match  # (importing the matcher registers its warm-ups with .jit)
     from .jit import warm_up
-    from .matcher import match
 
     compile_s = warm_up(f1, f2, mode, config) if warm else 0.0
     out = match(f1, f2, mode, config, return_models=return_models)
@@ -197,6 +197,7 @@ def cmd_match(args) -> int:
     if args.plot:
         check_output_path(args.plot, "--plot")
 
+    from . import matcher  # noqa: F401 - registers the matcher's warm-ups with .jit
     from .jit import background_compile, guided_kernels_needed
 
     # the images are read (strict decode) and their detection memory checked before the first-run compile starts:
@@ -266,6 +267,7 @@ def cmd_demo(args) -> int:
     for name in ("demo_matches.png", "demo_results.json"):
         check_output_path(out / name, "--out")
     w, h = args.size
+    from . import matcher  # noqa: F401 - registers the matcher's warm-ups with .jit
     from .jit import background_compile, guided_kernels_needed, warm_up
 
     with background_compile(args.detector, MODES) as bg:  # first run: kernels compile on both cores meanwhile

@@ -1,4 +1,4 @@
-"""Numba compilation kept out of reported timings (issue 14).
+"""Numba compilation kept out of reported timings.
 
 The kernels (:mod:`guidedmatch.kernels`, :mod:`guidedmatch.spatial_order`) are compiled by Numba the first time
 they see a descriptor kind (``cache=True`` stores the machine code next to the sources, or in
@@ -9,7 +9,11 @@ are not matching time. This module
   (:class:`CompileMonitor`, :func:`compile_monitor`);
 * prints one line on stderr when a kernel is compiled for the first time (:data:`NOTE`);
 * warms up exactly the kernels a run needs -- the same mode on subsets of the same descriptors
-  (:func:`warm_up`) -- so that the timed run that follows only executes machine code.
+  (:func:`warm_up`) -- so that the timed run that follows only executes machine code;
+* compiles a first run's kernels in helper processes while the caller reads and detects (:func:`background_compile`).
+
+What to run for a warm-up is a registry (:func:`register_warmup`) that the matcher fills when it is imported
+(``guidedmatch.matcher.warmup``): this module imports neither the matcher nor the kernels it serves.
 
 >>> with compile_monitor(note=False) as cm:
 ...     pass
@@ -23,10 +27,10 @@ import threading
 import time
 from contextlib import contextmanager
 
-import numpy as np
 from numba.core import event
 
-__all__ = ["CompileMonitor", "compile_monitor", "warm_up", "exclude_compile_time", "NOTE", "WARM_UP_FEATURES"]
+__all__ = ["CompileMonitor", "compile_monitor", "warm_up", "exclude_compile_time", "NOTE", "WARM_UP_FEATURES",
+           "register_warmup", "registered_warmup", "WARMUP_NAMES"]
 
 NOTE = ("guidedmatch: compiling Numba kernels for this descriptor type (first run only; cached for later runs, "
         "and not counted in the reported times) ...")
@@ -89,42 +93,54 @@ def exclude_compile_time(result, seconds: float):
     return dataclasses.replace(result, stats=stats)
 
 
-def _strongest(f, n: int):
-    """The ``n`` strongest features of ``f`` (by response; the first ``n`` without responses), in index order."""
-    if len(f) <= n:
-        return f
-    if f.responses is not None:
-        idx = np.sort(np.argsort(-f.responses, kind="stable")[:n])
-    else:
-        idx = np.arange(n)
-    return f.subset(idx)
+#: name -> function, filled by the modules whose kernels need warming up (:func:`register_warmup`); this module
+#: imports none of them
+_WARMUPS: dict = {}
+#: what each registered name does (the registry's contract; a registration under another name is refused)
+WARMUP_NAMES = {
+    "match": "fn(f1, f2, mode, config, max_features) -> None: run the matcher on subsets of the features",
+    "guided_kernels_needed": "fn(f1, f2, modes, config) -> bool: a run in any of modes is guided",
+    "cache_index": "fn() -> iterable: the keys of the on-disk cache index of the guided candidate kernel",
+    "guided": "fn(detector) -> None: compile the brute-force / guided candidate kernels (helper group)",
+    "order": "fn(detector) -> None: compile the spatial-order and search-region kernels (helper group)",
+}
+
+
+def register_warmup(name: str, fn) -> None:
+    """Register ``fn`` under ``name`` (one of :data:`WARMUP_NAMES`): the matcher (``guidedmatch.matcher.warmup``)
+    registers its warm-ups when it is imported, so this module never imports the matcher or its kernels. A later
+    registration under the same name replaces the earlier one."""
+    if name not in WARMUP_NAMES:
+        raise ValueError(f"unknown warm-up name {name!r}; expected one of {sorted(WARMUP_NAMES)}")
+    _WARMUPS[name] = fn
+
+
+def registered_warmup(name: str):
+    """The function registered under ``name``; a clear error when nothing registered it (the matcher registers every
+    name when ``guidedmatch.matcher`` is imported: import it first)."""
+    fn = _WARMUPS.get(name)
+    if fn is None:
+        raise RuntimeError(f"no warm-up registered under {name!r}: import guidedmatch.matcher first (it registers the "
+                           "matcher's kernel warm-ups with guidedmatch.jit)")
+    return fn
 
 
 def warm_up(f1, f2, mode: str, config=None, *, note: bool = True, max_features: int = WARM_UP_FEATURES) -> float:
     """Compile (or load from the cache) every kernel ``match(f1, f2, mode, config)`` needs, untimed.
 
-    Runs the same mode and config on the ``max_features`` strongest features of each image (same descriptor dtype
-    and length, hence the same kernel specializations); when the full run is guided, so is the warm-up (its
-    ``auto_bf`` is turned off: the subset may be below the brute-force threshold). Prints
+    Runs the registered ``"match"`` warm-up: the same mode and config on the ``max_features`` strongest features of
+    each image (same descriptor dtype and length, hence the same kernel specializations); when the full run is guided,
+    so is the warm-up (its ``auto_bf`` is turned off: the subset may be below the brute-force threshold). Prints
     :data:`NOTE` on stderr when something is actually compiled. Returns the seconds spent compiling (0.0 when
     everything was cached). Any kernel the warm-up run did not reach is still compiled by the timed run; callers
     measure that with :func:`compile_monitor` and report it separately.
     """
-    from .config import MatcherConfig, Mode
-    from .matcher import _bf_wins, match
-    from .validation import config_from
-
-    a, b = _strongest(f1, max_features), _strongest(f2, max_features)
-    if len(a) == 0 or len(b) == 0:
+    run = registered_warmup("match")
+    if len(f1) == 0 or len(f2) == 0:
         return 0.0
     with compile_monitor(note=note) as cm:
         try:
-            cfg = config_from(MatcherConfig, config)
-            binary = np.asarray(f1.descriptors).dtype == np.uint8
-            if Mode.parse(mode).guided and (len(a), len(b)) != (len(f1), len(f2)) and \
-                    _bf_wins(cfg, len(f1), len(f2), binary) is None:
-                cfg = cfg.replace(auto_bf=False)  # the full run is guided (not auto-bf): its smaller warm-up too
-            match(a, b, mode=mode, config=cfg)
+            run(f1, f2, mode, config, max_features)
         except Exception:  # the real run reports errors; a warm-up never hides or raises them
             pass
     return cm.seconds
@@ -144,13 +160,13 @@ def _kernel_dtype(detector: str) -> str:
 def cache_is_cold(detector: str) -> bool:
     """True when Numba's on-disk cache holds no guided kernel for ``detector``'s descriptor type (a first run).
 
-    Reads the cache index of :data:`guidedmatch.kernels._guided_ser` (Numba internals, so any failure -- caching
-    disabled, another Numba version -- answers False: no background work, the foreground compiles as usual).
+    Reads the cache index of the guided candidate kernel (the registered ``"cache_index"``; Numba internals, so any
+    failure -- caching disabled, another Numba version -- answers False: no background work, the foreground compiles
+    as usual).
     """
+    probe = registered_warmup("cache_index")
     try:
-        from . import kernels
-
-        index = kernels._guided_ser._cache._cache_file._load_index()
+        index = probe()
         tag = f"Array({_kernel_dtype(detector)}, 2"
         return not any(tag in str(key) for key in index)
     except Exception:
@@ -163,52 +179,13 @@ HELPER_GROUPS = ("guided", "order")
 
 
 def _precompile(detector: str, group: str) -> None:
-    """Compile (into the on-disk cache) one group of the kernels a run of ``detector`` features needs, by direct
-    calls on small arrays of the exact argument types the matcher passes:
-
-    * ``"guided"``: first the brute-force top-2 (mode ``bf`` and the guided modes' unguided phase) and, for SIFT,
-      the exact-uint8 descriptor check; then the guided candidate kernel of ``detector``'s descriptor kind and the
-      strip index's counting sort (every guided mode);
-    * ``"order"``: the spatial-order kernels (modes with ``so``), through :func:`~guidedmatch.spatial_order.
-      fit_spatial_order` and a lookup on a synthetic monotone match set with outliers, and the search-region kernel.
-
-    A group that misses a specialization costs nothing but time: the caller's warm-up compiles whatever is not in
-    the cache (and reports it).
-    """
-    from . import kernels
-
-    rng = np.random.default_rng(0)
-    n = 64
-    sift = detector == "sift"
-    desc = rng.integers(0, 256, (n, 128)).astype(np.float32)
-    if group == "guided":
-        if sift:
-            d = kernels.as_exact_uint8(desc)
-            kernels.top2_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), False)
-            kernels.topk_gemm_serial(desc @ desc.T, np.ones(n, np.float32), np.ones(n, np.float32), 4)  # IVF coarse
-        else:
-            d = kernels.pack_bits_u64(desc[:, :32].astype(np.uint8))
-            kernels.hamming_top2(d, d)
-            kernels.hamming_col_best(d, d)
-        pts = rng.uniform(0, 100, (n, 2))
-        cols, rows = kernels.build_strips(pts, 16.0, 0), kernels.build_strips(pts, 16.0, 1)
-        lines = np.tile([0.0, 1.0, -50.0], (n, 1))
-        kernels.guided_top2(np.arange(n), d, d, lines, True, 5.0, np.full(n, -np.inf), np.full(n, np.inf), cols, rows)
-    elif group == "order":
-        from .spatial_order import admissible_x_ranges, fit_spatial_order
-
-        m = 300
-        x1 = rng.uniform(0, 1000, m)
-        x2 = 0.9 * x1 + 40 + rng.normal(0, 2, m)
-        x2[:30] = rng.uniform(0, 1000, 30)  # wrong matches
-        y = rng.uniform(0, 800, m)
-        model = fit_spatial_order(x1, x2, y1=y, y2=y, likely_correct=np.arange(m) >= 30)
-        admissible_x_ranges(model, x1[:8] + 0.5)
-        from .matcher import search_regions
-
-        search_regions(np.c_[x1[:8], y[:8]], model, np.eye(3), (0.0, 1000.0), "band")  # the region kernel
-    else:
+    """Compile (into the on-disk cache) one group of :data:`HELPER_GROUPS` for ``detector`` features: the function
+    registered under the group's name (``guidedmatch.matcher.warmup``: direct calls of the kernels on small arrays of
+    the exact argument types the matcher passes). A group that misses a specialization costs nothing but time: the
+    caller's warm-up compiles whatever is not in the cache (and reports it)."""
+    if group not in HELPER_GROUPS:
         raise ValueError(f"unknown kernel group {group!r}")
+    registered_warmup(group)(detector)
 
 
 def _helper_main(detector: str, group: str, seconds=None) -> None:  # pragma: no cover - a forked helper
@@ -269,9 +246,9 @@ def _can_fork() -> bool:
 
 
 def _start_helper(detector: str, group: str):
-    """Start the helper process compiling kernel ``group``: forked on Linux, once this process has imported the
-    matcher and initialised Numba's compiler (both ~0.7 CPU-seconds that every fresh interpreter pays again, and
-    that this process needs anyway), else ``python -m guidedmatch.jit DETECTOR GROUP``."""
+    """Start the helper process compiling kernel ``group``: forked on Linux, once this process has initialised Numba's
+    compiler (~0.7 CPU-seconds, with the matcher's imports, that every fresh interpreter pays again, and that this
+    process needs anyway), else a fresh interpreter that imports the modules which registered the warm-ups."""
     import multiprocessing
     import subprocess
 
@@ -283,7 +260,11 @@ def _start_helper(detector: str, group: str):
                            daemon=True)
         proc.start()
         return _Forked(proc, seconds)
-    return subprocess.Popen([sys.executable, "-m", "guidedmatch.jit", detector, group],
+    # a fresh interpreter: import the modules that registered the warm-ups, then compile the group
+    modules = sorted({getattr(fn, "__module__", None) for fn in _WARMUPS.values()} - {None, __name__})
+    code = ("import importlib, sys\nfor m in sys.argv[3:]:\n    importlib.import_module(m)\n"
+            f"importlib.import_module({__name__!r})._precompile(sys.argv[1], sys.argv[2])\n")
+    return subprocess.Popen([sys.executable, "-c", code, detector, group, *modules],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
@@ -291,13 +272,12 @@ _compiler_ready = False
 
 
 def _init_compiler() -> None:
-    """Import what the helpers compile and compile one trivial function (Numba's one-off compiler set-up)."""
+    """Compile one trivial function (Numba's one-off compiler set-up) before forking helpers; the kernels' modules are
+    already imported by whoever registered the warm-ups (the matcher)."""
     global _compiler_ready
     if _compiler_ready:
         return
     from numba import njit
-
-    from . import kernels, matcher, spatial_order  # noqa: F401 - imported for the forked helpers
 
     njit(cache=False)(lambda x: x + 1)(1)
     _compiler_ready = True
@@ -370,14 +350,9 @@ class BackgroundCompile:
 def guided_kernels_needed(f1, f2, modes, config=None) -> bool:
     """Whether matching ``f1`` with ``f2`` in any of ``modes`` runs the guided matcher, i.e. a guided mode that
     ``auto_bf`` does not replace by brute force at these feature counts (e.g. ORB below 12000 features: every
-    mode is brute force, so the guided and spatial-order kernels the helpers compile would never be used)."""
-    from .config import MatcherConfig, Mode
-    from .matcher import _bf_wins
-    from .validation import config_from
-
-    cfg = config_from(MatcherConfig, config)
-    binary = np.asarray(f1.descriptors).dtype == np.uint8
-    return any(Mode.parse(m).guided and _bf_wins(cfg, len(f1), len(f2), binary) is None for m in modes)
+    mode is brute force, so the guided and spatial-order kernels the helpers compile would never be used); the
+    registered ``"guided_kernels_needed"``."""
+    return bool(registered_warmup("guided_kernels_needed")(f1, f2, modes, config))
 
 
 def _background_wanted() -> bool:
@@ -428,7 +403,3 @@ def background_compile(detector: str, modes=("so+epi+ia",), *, stream=None):
         bg.stop()
         raise
     bg.wait()
-
-
-if __name__ == "__main__":  # helper process of background_compile: python -m guidedmatch.jit DETECTOR GROUP
-    _precompile(sys.argv[1], sys.argv[2])

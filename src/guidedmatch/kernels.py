@@ -1,13 +1,14 @@
-"""Numba kernels for descriptor distances: top-2 search over dense blocks, Hamming brute force,
+"""Numba kernels for descriptor distances: top-k search over dense GEMM blocks, Hamming brute force,
 and the guided candidate kernel of the progressive matcher.
 
-All kernels return, per query, the best and second-best candidate (index and distance) and count the
-exact number of descriptor distances they evaluated (the paper's "# matches" column, Teng & Dong §IV-A).
-Distances returned by these kernels are **squared** L2 for float32 and byte-valued (uint8) descriptors
-(``top2_gemm``: ``max(|q|^2 + |t|^2 - 2 q.t, 0)`` in float32; ``guided_top2``: the sum of squared differences,
-exact integers for byte-valued rows) and Hamming bit counts for binary ones (uint64 words; not squared), all as
-float32. The callers take the square root for float descriptors: ``bruteforce.knn2`` and the matcher report L2
-(Euclidean, not squared), so ``MatchResult.distances`` are L2 or Hamming bits.
+The kernels return, per query, the best few candidates (index and distance) and count the exact number of
+descriptor distances they evaluated (the paper's "# matches" column, Teng & Dong §IV-A). Distances returned by
+these kernels are **squared** L2 for float32 and byte-valued (uint8) descriptors (``topk_gemm_serial``:
+``max(|q|^2 + |t|^2 - 2 q.t, 0)`` in float32; ``guided_top2``: the sum of squared differences, exact integers for
+byte-valued rows) and Hamming bit counts for binary ones (uint64 words; not squared), all as float32. Integer ones
+are exact; float ones depend on the summation order (the CPU's vector width, the BLAS, the thread split), so the
+callers recompute the best few exactly (:mod:`guidedmatch.exact`) and report L2 (Euclidean, not squared): the
+float32 square root of the exact squared distance. ``MatchResult.distances`` are L2 or Hamming bits.
 Index ``-1`` and distance ``+inf`` mean "no such candidate".
 """
 from __future__ import annotations
@@ -54,8 +55,12 @@ def _hamming(a, b):
     return np.float32(s)
 
 
-@njit(inline="always", cache=True, fastmath=True)
+@njit(cache=True, fastmath={"reassoc", "contract"})
 def _l2sq(a, b):
+    # approximate squared L2 of float32 rows: 'reassoc' lets LLVM vectorize the sum, in an order set by the CPU's
+    # vector width, so the value may differ in the last bits between CPUs; the matcher takes the kernel's best three
+    # and recomputes them exactly (guidedmatch.exact). Not inlined at Numba-IR level (as _l2sq_u8): the fast-math
+    # flags stay on these instructions, the calling kernel's band test stays IEEE on every CPU.
     s = np.float32(0.0)
     for k in range(a.shape[0]):
         d = a[k] - b[k]
@@ -128,52 +133,29 @@ def _push(d, j, b1, j1, b2, j2):
     return b1, j1, d, j
 
 
+@njit(inline="always", cache=True)
+def _push3(d, j, b1, j1, b2, j2, b3, j3):
+    # top-3 update, equal distances by the lower index (the guided kernel keeps a third for the exact recompute)
+    if d > b3 or (d == b3 and j >= j3 >= 0):
+        return b1, j1, b2, j2, b3, j3
+    if d < b2 or (d == b2 and j < j2):
+        if d < b1 or (d == b1 and j < j1):
+            return d, j, b1, j1, b2, j2
+        return b1, j1, d, j, b2, j2
+    return b1, j1, b2, j2, d, j
+
+
 # --------------------------------------------------------------------------- dense top-2
-def _top2_gemm_py(dot, nn2, qn, write_back):
-    """Top-2 of every row of squared L2 distances given as a GEMM block.
-
-    ``dot (R, C) float32`` = query·targetᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms. The squared distance
-    ``max((dot * -2 + nn2) + qn, 0)`` is formed element by element in float32 with exactly that rounding order
-    (no fast-math, so no contraction), i.e. bit-identical to the NumPy expression, but in one pass over the
-    block instead of four. With ``write_back`` the distances are also stored into ``dot`` (for column minima).
-    Returns ``(i1, d1, i2, d2)``: ``(R,) int64`` column indices and ``(R,) float32`` **squared** L2 distances (the
-    caller takes the square root); ties keep the lowest column index (like ``np.argmin``).
-    """
-    r, c = dot.shape
-    i1 = np.full(r, -1, np.int64)
-    i2 = np.full(r, -1, np.int64)
-    d1 = np.full(r, np.inf, np.float32)
-    d2 = np.full(r, np.inf, np.float32)
-    m2 = np.float32(-2.0)
-    zero = np.float32(0.0)
-    for i in range(r):
-        b1 = np.float32(np.inf)
-        b2 = np.float32(np.inf)
-        j1 = -1
-        j2 = -1
-        row = dot[i]
-        q = qn[i]
-        for j in range(c):
-            v = max((row[j] * m2 + nn2[j]) + q, zero)
-            if write_back:
-                row[j] = v
-            b1, j1, b2, j2 = _push(v, j, b1, j1, b2, j2)
-        i1[i] = j1
-        i2[i] = j2
-        d1[i] = b1
-        d2[i] = b2
-    return i1, d1, i2, d2
-
-
 def _topk_gemm_py(dot, nn2, qn, k):
     """The ``k`` smallest squared L2 distances of every row of a GEMM block, ascending: ``(idx (R, k) int64,
     dist (R, k) float32)`` (``-1`` / ``inf`` past the number of columns).
 
-    ``dot (R, C) float32`` = query·centroidᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms; the distance is
+    ``dot (R, C) float32`` = query·targetᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms; the distance is
     ``max((qn + nn2) - 2 dot, 0)`` in float32, in that order (faiss's ``exhaustive_L2sqr_blas``). Equal distances
-    keep the lower column index. For the coarse step of an IVF search (:meth:`guidedmatch.prepared.PreparedImage.
-    search2`), where ``k`` = nprobe is a few and a row has a few hundred columns: one comparison per column, an
-    insertion only when the column beats the current ``k``-th.
+    keep the lower column index. ``k`` is a few (the IVF coarse step's nprobe + 2, brute force's
+    :data:`guidedmatch.exact.K`): one comparison per column, an insertion only when the column beats the current
+    ``k``-th. The values are approximate (float32 GEMM); the callers recompute the winners exactly
+    (:mod:`guidedmatch.exact`).
     """
     r, c = dot.shape
     idx = np.full((r, k), -1, np.int64)
@@ -413,14 +395,14 @@ def counting_order(key, nbins):
 
 
 @njit(inline="always", cache=True)
-def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1, b2, j2, cnt):
+def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1, b2, j2, b3, j3, cnt):
     # all points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the region
     # predicate lo <= x <= hi and |a x + b y + c| <= band ([kmin, kmax] only limits the scan)
     k0 = S.k0
     nk = S.ncells
     h = S.cell
     if kmax < k0 or kmin > k0 + nk * h:
-        return b1, j1, b2, j2, cnt
+        return b1, j1, b2, j2, b3, j3, cnt
     c0 = 0 if kmin <= k0 else min(int((kmin - k0) // h), nk - 1)
     c1 = nk - 1 if kmax >= k0 + nk * h else min(int((kmax - k0) // h), nk - 1)
     offsets, items, ps = S.offsets, S.items, S.pts_sorted
@@ -433,8 +415,8 @@ def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1,
             j = items[p]
             d = desc_dist(qd, desc2[j])
             cnt += 1
-            b1, j1, b2, j2 = _push(d, j, b1, j1, b2, j2)
-    return b1, j1, b2, j2, cnt
+            b1, j1, b2, j2, b3, j3 = _push3(d, j, b1, j1, b2, j2, b3, j3)
+    return b1, j1, b2, j2, b3, j3, cnt
 
 
 def first_nonempty(S):
@@ -462,12 +444,12 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     such query exists). Only strips the region can touch are visited, and in each only the cells spanned by the
     band's extent; the predicate above is then tested exactly per scanned point.
 
-    ``desc1``/``desc2``: float32 rows (squared L2), uint8 byte-valued rows (exact squared L2) or uint64 words
-    (Hamming). Returns ``(i1, d1, i2, d2, ncand, nvisit)`` with original image-2 indices, raw ``desc_dist``
-    values, ``ncand[q]`` = the exact number of descriptor distances evaluated for query ``q`` and ``nvisit[q]`` =
+    ``desc1``/``desc2``: float32 rows (squared L2, approximate: a vectorized sum), uint8 byte-valued rows (exact
+    squared L2) or uint64 words (Hamming). Returns ``(i1, d1, i2, d2, ncand, nvisit, i3, d3)`` with original
+    image-2 indices, raw ``desc_dist`` values (``i3, d3``: the third best), ``ncand[q]`` = the exact number of descriptor distances evaluated for query ``q`` and ``nvisit[q]`` =
     the strips it visited.
 
-    Work bound (issue 11): each query's walk is clipped to the part of its band inside the bounding box of the
+    Work bound: each query's walk is clipped to the part of its band inside the bounding box of the
     indexed points and jumps over empty strips (``fcols``/``frows`` = :func:`first_nonempty` of ``cols``/``rows``),
     so a query visits at most the occupied strips its band crosses -- never a number of strips set by the
     coordinate range of a (badly) transformed frame.
@@ -477,6 +459,8 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     i2 = np.full(nq, -1, np.int64)
     d1 = np.full(nq, np.inf, np.float32)
     d2 = np.full(nq, np.inf, np.float32)
+    i3 = np.full(nq, -1, np.int64)
+    d3 = np.full(nq, np.inf, np.float32)
     ncand = np.zeros(nq, np.int64)
     nvisit = np.zeros(nq, np.int64)
     w = cols.width
@@ -496,8 +480,10 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
         c = lq[2]
         b1 = np.float32(np.inf)
         b2 = np.float32(np.inf)
+        b3 = np.float32(np.inf)
         j1 = -1
         j2 = -1
+        j3 = -1
         cnt = 0
         vis = 0
         xa = max(lo, gx0)
@@ -537,8 +523,8 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 else:
                     kmin = -np.inf
                     kmax = np.inf
-                b1, j1, b2, j2, cnt = _scan_strip(cols, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi,
-                                                  b1, j1, b2, j2, cnt)
+                b1, j1, b2, j2, b3, j3, cnt = _scan_strip(cols, s, kmin, kmax, qd, desc2, lq, use_band, band, lo,
+                                                          hi, b1, j1, b2, j2, b3, j3, cnt)
                 s = fcols[s + 1]
         else:
             # horizontal strips sorted by x; rows limited to where the band can meet x in [lo, hi]
@@ -573,16 +559,18 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 kmin -= eps * (1.0 + abs(kmin))
                 kmax += eps * (1.0 + abs(kmax))
                 if kmin <= kmax:
-                    b1, j1, b2, j2, cnt = _scan_strip(rows, r, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi,
-                                                      b1, j1, b2, j2, cnt)
+                    b1, j1, b2, j2, b3, j3, cnt = _scan_strip(rows, r, kmin, kmax, qd, desc2, lq, use_band, band,
+                                                              lo, hi, b1, j1, b2, j2, b3, j3, cnt)
                 r = frows[r + 1]
         i1[q] = j1
         i2[q] = j2
         d1[q] = b1
         d2[q] = b2
+        i3[q] = j3
+        d3[q] = b3
         ncand[q] = cnt
         nvisit[q] = vis
-    return i1, d1, i2, d2, ncand, nvisit
+    return i1, d1, i2, d2, ncand, nvisit, i3, d3
 
 
 def _renamed(fn, name):
@@ -597,18 +585,15 @@ _FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 # inputs are cut into one contiguous chunk per Numba thread and the chunks run in Python threads
 # (:func:`_chunked`). That is the same schedule as a ``prange`` loop (Numba's default: one equal chunk per
 # thread), with identical results, but compiles 2-3x faster: the parfor lowering of the guided kernel alone took
-# 6 s of a first run's compilation, more than the single-threaded kernel it wraps (2.6 s) -- issue 14.
-#: fused GEMM post-processing + top-2 of a block of rows (:func:`top2_gemm` runs it on row chunks in threads)
-top2_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_top2_gemm_py, "top2_gemm_serial"))
-#: the k nearest centroids of a block of rows (:func:`topk_gemm` runs it on row chunks in threads)
+# 6 s of a first run's compilation, more than the single-threaded kernel it wraps (2.6 s).
+#: fused GEMM post-processing + the k smallest of a block of rows (the k nearest centroids of the IVF coarse step,
+#: the k nearest candidates of brute force: :func:`topk_gemm`, :func:`topk_block` run it on row chunks in threads)
 topk_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_topk_gemm_py, "topk_gemm_serial"))
-# Integer descriptors (uint8 byte-valued L2, uint64 Hamming) need no fast-math, and without it the band test
-# |a x + b y + c| <= band is evaluated with plain IEEE rounding, bit for bit as NumPy does (fast-math would contract
-# it into FMAs and move points lying exactly on the band edge). Float descriptors need 'reassoc' to vectorize the
-# L2 sum, so for them the band test may differ from NumPy's by an ulp at the exact edge.
+# The guided kernel is compiled without fast-math for every descriptor kind: its band test |a x + b y + c| <= band is
+# evaluated with plain IEEE rounding, bit for bit as NumPy does, on every CPU (fast-math would let LLVM contract it
+# into FMAs as it sees fit and move points lying exactly on the band edge). The float L2 sum carries its own fast-math
+# flags (_l2sq, vectorized): its distances are approximate, and the matcher recomputes the best three exactly.
 _guided_ser = njit(parallel=False, cache=True, nogil=True)(_renamed(_guided_py, "guided_top2_serial"))
-_guided_ser_fm = njit(parallel=False, cache=True, nogil=True,
-                      fastmath=_FASTMATH)(_renamed(_guided_py, "guided_top2_serial_fm"))
 #: fewer queries run in the calling thread: for small batches (the progressive phase's 64 queries between BLAS
 #: calls) waking threads costs more than it saves on 2 cores
 PARALLEL_MIN_QUERIES = 2048
@@ -674,13 +659,10 @@ def _chunked_rows(fn, n: int, min_rows: int, threads: int | None = None):
     return _join_rows(_chunked(fn, n, min_rows, threads))
 
 
-def top2_gemm(dot, nn2, qn, write_back):
-    """:func:`top2_gemm_serial` on one chunk of rows per thread (large blocks); same arguments and results."""
-    return _chunked_rows(lambda a, b: top2_gemm_serial(dot[a:b], nn2, qn[a:b], write_back), dot.shape[0], 256)
-
-
-top2_gemm.__doc__ = (_top2_gemm_py.__doc__ or "") + """
-    Large blocks (>= 256 rows) are cut into one chunk of rows per Numba thread, run in threads (``nogil``)."""
+def topk_block(dot, nn2, qn, k):
+    """:func:`topk_gemm_serial` of a GEMM block ``dot (R, C)`` on one chunk of rows per thread (blocks of >= 256
+    rows): ``(idx (R, k), dist (R, k))``, the ``k`` smallest approximate squared distances of each row, ascending."""
+    return _chunked_rows(lambda a, b: topk_gemm_serial(dot[a:b], nn2, qn[a:b], int(k)), dot.shape[0], 256)
 
 
 def topk_gemm(q, centroids, cn, k, threads: int | None = None):
@@ -702,11 +684,11 @@ def topk_gemm(q, centroids, cn, k, threads: int | None = None):
 
 # rows per GEMM block of topk_gemm: its (rows, nlist) float32 distances stay in a core's L2 (1024 x 637 = 2.6 MB);
 # 68k queries vs 637 centroids, one thread: 0.15 s in blocks of 512-2048 rows, 0.18-0.22 s as one block
-# (/tmp/s23/blk.py)
 _TOPK_BLOCK = 1024
 
 
-def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows, *, return_visits: bool = False):
+def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows, *, return_visits: bool = False,
+                return_third: bool = False):
     queries = np.ascontiguousarray(queries, np.int64)
     lines = np.ascontiguousarray(lines, np.float64).reshape(-1, 3)
     xlo = np.ascontiguousarray(xlo, np.float64)
@@ -716,12 +698,13 @@ def guided_top2(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, ro
     if use_band and len(cols.items) and not len(rows.items):
         if np.any(np.abs(lines[:, 0]) > np.abs(lines[:, 1])):
             raise ValueError("near-vertical epipolar lines need the row strips (build_strips(pts, width, axis=1))")
-    kernel = _guided_ser_fm if desc1.dtype.kind == "f" else _guided_ser
+    kernel = _guided_ser
     use_band, band = bool(use_band), float(band)
     fc, fr = first_nonempty(cols), first_nonempty(rows)
     out = _chunked_rows(lambda a, b: kernel(queries[a:b], desc1, desc2, lines[a:b], use_band, band, xlo[a:b],
                                             xhi[a:b], cols, rows, fc, fr), len(queries), PARALLEL_MIN_QUERIES)
-    return out if return_visits else out[:5]
+    res = tuple(out[:6]) if return_visits else tuple(out[:5])
+    return res + tuple(out[6:]) if return_third else res
 
 
 def hamming_top2(q, t):
@@ -737,4 +720,6 @@ def hamming_col_best(q, t):
 
 
 guided_top2.__doc__ = (_guided_py.__doc__ or "") + """
-    ``guided_top2(..., return_visits=True)`` also returns ``nvisit``; without it the first five arrays."""
+    ``guided_top2(..., return_visits=True)`` also returns ``nvisit``; without it the first five arrays.
+    ``return_third=True`` appends ``(i3, d3)``, the third-best candidate (for the exact recompute of float
+    descriptors, :mod:`guidedmatch.exact`)."""

@@ -1,4 +1,5 @@
-"""Per-image state reused across every pair an image takes part in (issue 11, "a cheap start on low-overlap pairs").
+"""Per-image state reused across every pair an image takes part in (a cheap unguided start, above all on low-overlap
+pairs).
 
 Matching one image against many (an SfM collection) repeats per-image work on every pair: descriptor conversion to
 the kernels' form (exact uint8 copies of byte-valued SIFT, packed 64-bit words of binary descriptors), squared norms
@@ -12,7 +13,7 @@ and no residual, which stores the same values in a quarter of the memory and giv
 ``nlist = nlist_factor * sqrt(N)`` k-means cells trained on at most ``train_per_list * nlist`` descriptors with a fixed
 seed, so it is deterministic; ``nprobe`` cells are searched per query. It is built lazily the first time the image is
 the second image of a pair whose unguided phase uses it, then kept. Measured on Herz-Jesus-P8 (8192 SIFT per image,
-2 cores, one run; ``/tmp/pairs/ivf_exp.py``): IVF (2 sqrt N = 181 cells, nprobe 4) searches all 8192 queries of a
+2 cores, one run): IVF (2 sqrt N = 181 cells, nprobe 4) searches all 8192 queries of a
 pair with 4.5-4.8 % of the N1*N2 distance evaluations (coarse + fine) in 0.06-0.15 s against 0.6-1.3 s for the
 exact GEMM top-2 in 64-query batches (0.10-0.12 of it), its nearest neighbour agrees with the exact one on 98.8-100 %
 of the ratio-test matches, and it builds in 0.09-0.19 s; HNSW (M = 32, efSearch 32) needs 0.54-1.16 of the GEMM
@@ -33,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels
+from . import exact, kernels
 from .errors import InputError
 from .features import Features
 from .validation import check_choice, check_number
@@ -100,6 +101,7 @@ class PreparedImage:
         self.finite = True if self.binary else bool(np.isfinite(self.sqnorms).all())
         self._index = None
         self._coarse = None  # (centroids, their squared norms, the index they came from): search2's coarse step
+        self._list_ids = None  # each IVF list's descriptor indices (search2's rare exact fallback)
         self._lock = threading.Lock()
         self.index_build_s = 0.0
 
@@ -115,6 +117,7 @@ class PreparedImage:
         state = dict(self.__dict__)
         state["_index"] = None
         state["_coarse"] = None
+        state["_list_ids"] = None
         state.pop("_lock", None)
         return state
 
@@ -183,6 +186,7 @@ class PreparedImage:
             index.add(d)
         index.nprobe = min(int(c.nprobe), nlist)
         self._list_sizes = np.array([index.invlists.list_size(i) for i in range(nlist)], np.int64)
+        self._list_ids = None  # each list's descriptor indices, read on first need (exact_top's rare fallback)
         self.index_build_s = time.perf_counter() - t0
         return index
 
@@ -195,12 +199,28 @@ class PreparedImage:
             c = self._coarse = (cent, np.einsum("ij,ij->i", cent, cent), index)
         return c[0], c[1]
 
+    def _list_members(self, lists) -> np.ndarray:
+        """Descriptor indices stored in the index's ``lists`` (the domain of a query that probed them)."""
+        import faiss
+
+        if self._list_ids is None:
+            inv = self.index().invlists
+            self._list_ids = [faiss.rev_swig_ptr(inv.get_ids(i), int(n)).astype(np.int64) if n else
+                              np.zeros(0, np.int64) for i, n in enumerate(self._list_sizes)]
+        lists = [int(x) for x in np.asarray(lists).ravel() if x >= 0]
+        return np.concatenate([self._list_ids[x] for x in lists]) if lists else np.zeros(0, np.int64)
+
     def search2(self, queries: np.ndarray):
         """Approximate 2-NN of float ``queries (Q, D)`` in this image: ``(i1, s1, i2, s2, comparisons)``.
 
-        ``s1``, ``s2`` are exact squared L2 distances to the two nearest descriptors found in the ``nprobe`` probed
-        cells (``-1`` / ``inf`` when fewer than two were found); ``comparisons`` = the exact number of distance
-        evaluations: ``nlist`` centroid distances per query plus the size of every probed cell.
+        The probed cells: the ``nprobe`` centroids nearest each query, exactly (the GEMM's ``nprobe + 2`` nearest
+        recomputed and certified, :func:`guidedmatch.exact.exact_top`); then the :data:`~guidedmatch.exact.K` nearest
+        descriptors in those cells by faiss, recomputed and certified the same way (a near-tie at the K-th: every
+        descriptor of the probed cells exactly). ``s1``, ``s2`` are the exact squared L2 distances (float64) to the
+        two nearest descriptors in the probed cells (``-1`` / ``inf`` when fewer than two were found), the same on
+        every CPU and thread count given the index; ``comparisons`` = the number of distance evaluations of the
+        search: ``nlist`` centroid distances per query plus the size of every probed cell (the exact recompute of
+        a few of them is not counted again).
         """
         index = self.index()
         if index is None:
@@ -213,12 +233,22 @@ class PreparedImage:
         # faiss's flat quantizer: 68k queries vs 637 centroids 0.16-0.22 s, one thread. faiss took 0.57-0.64 s while
         # its bundled OpenBLAS ran generic kernels (_runtime.pin_faiss_blas), 0.18-0.21 s on the CPU's own; ours does
         # not depend on how faiss's BLAS was loaded (docs/pairs.md)
-        Iq, Dq = kernels.topk_gemm(q, *self._centroids(), min(int(index.nprobe), self.nlist), threads)
+        cent, cn = self._centroids()
+        nprobe = min(int(index.nprobe), self.nlist)
+        Ic, Dc = kernels.topk_gemm(q, cent, cn, min(nprobe + 2, self.nlist), threads)
+        qn = np.einsum("ij,ij->i", q, q)
+        Iq, Dq = exact.exact_top(q, cent, Ic, Dc, nprobe,
+                                 delta=exact.gemm_delta(qn, float(cn.max()), q.shape[1]))
+        Dq = Dq.astype(np.float32)
+        k = exact.K
         with _faiss_threads(threads):
-            D, I = index.search_preassigned(q, 2, Iq, Dq)
+            D, I = index.search_preassigned(q, k, Iq, Dq)
         comparisons = int(len(q)) * self.nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
+        I = I.astype(np.int64)
         D = np.where(I >= 0, D, np.inf).astype(np.float32)
-        return I[:, 0].astype(np.int64), D[:, 0], I[:, 1].astype(np.int64), D[:, 1], comparisons
+        top, sq = exact.exact_top(q, self.features.descriptors, I, D, 2, gamma=exact.sum_gamma(q.shape[1]),
+                                  domain=lambda i: self._list_members(Iq[i]))
+        return top[:, 0], sq[:, 0], top[:, 1], sq[:, 1], comparisons
 
 
 class _faiss_threads:
@@ -269,8 +299,8 @@ class UnguidedSearch:
     Hamming top-2 of binary descriptors. With ``kind="ivf"`` and ``exact_budget > 0`` the first queries are searched
     exactly (GEMM) until ``exact_budget`` comparisons are spent, the index only after (built then when image 2 was not
     prepared; the build time is in ``index_build_s``): ski-rental, the same searches whether or not the index exists.
-    :meth:`query` returns ``(i1, s1, i2, s2, comparisons)`` with squared L2 distances (float) or Hamming bit counts
-    (binary), i.e. the candidate kernel's distance form.
+    :meth:`query` returns ``(i1, s1, i2, s2, comparisons)`` with exact squared L2 distances (float64,
+    :mod:`guidedmatch.exact`) or Hamming bit counts (binary).
     """
 
     KINDS = ("ivf", "gemm", "popcount")
@@ -322,7 +352,7 @@ class UnguidedSearch:
         if self.kind == "ivf":
             # the index's coarse GEMMs (search2) run one per kernel thread: BLAS single-threaded meanwhile, as in
             # DenseKnn2 (two collection threads' unrelated 68k pairs: 1.3-1.6 s with BLAS's own threads on top,
-            # 0.84-0.95 s without; /tmp/s22/s2conc.py)
+            # 0.84-0.95 s without)
             from .bruteforce import blas_one_thread
 
             self._blas = blas_one_thread(load_scipy=False)

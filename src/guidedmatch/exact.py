@@ -1,0 +1,160 @@
+"""Exact, order-fixed descriptor distances: the reported distance of every match and every ratio-test decision.
+
+The fast searches (BLAS GEMM, the vectorized Numba L2 sum of the guided kernel, faiss) add up a float distance in an
+order set by the CPU's vector width, the BLAS kernel and how the work is cut between threads, so their values can
+differ in the last bits between an Intel AVX-512 and an AMD AVX2 machine, between 1 and 2 BLAS or Numba threads,
+between a direct call and a collection's worker. Here each such search hands over its ``K`` approximately nearest
+candidates per query; their distances are recomputed by :func:`sqdist_rows` -- float64 differences squared and added
+one dimension after the other in index order, in a Numba kernel compiled *without* fast-math, so LLVM may neither
+reassociate the sum (vectorizing a float reduction needs that) nor contract it into FMAs: the same IEEE-754
+operations in the same order on every x86-64 CPU, whatever its vector width or thread count -- and the nearest ``m``
+(the top 2 of a ratio test) are taken on these values, equal distances by the lower index. Integer distances (uint8
+descriptors summed in int/float32 below 2^24, Hamming popcounts) are exact already and are not recomputed.
+
+**The candidate set is certified, not hoped for.** A fast search's distance ``~d`` of a true distance ``d`` obeys
+``|~d - d| <= delta + gamma d`` for a known bound (:func:`sum_gamma`: a float32 sum of D non-negative squares, any
+order; :func:`gemm_delta`: ``|q|^2 + |t|^2 - 2 q.t`` from a float32 GEMM, any order, FMA or not). Every candidate the
+search did not return has ``~d >= ~d_K`` (the K-th returned), and the m returned first have true distances
+``<= (~d_m + delta) / (1 - gamma)``; so when ``(~d_K - delta) / (1 + gamma) > (~d_m + delta) / (1 - gamma)`` no
+unreturned candidate can be among the true nearest m, ties included, and the exact top m of the K returned is the
+exact top m of the whole search domain, on any CPU. A search that returned fewer than K candidates returned its whole
+domain. Otherwise (a near-tie at the K-th candidate; rare, and counted in :data:`FALLBACKS`) that query's whole domain
+is recomputed exactly. The cost is ``Q * K * D`` operations besides the search (``Q * N * D`` for the rare fallback).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+#: approximate candidates a fast search hands over per query for an exact top 2 (2 + a margin of 2)
+K = 4
+#: unit roundoff of float32
+U32 = 2.0 ** -24
+#: queries whose candidate set could not be certified and were recomputed over their whole domain (since import)
+FALLBACKS = [0]
+
+
+def sum_gamma(dim: int) -> float:
+    """Relative error bound of a float32 sum of ``dim`` squared float32 differences, in any order (with or without
+    FMA): ``gamma_{dim+2}`` (each term: a rounded difference and a rounded square; the sum: dim - 1 roundings, no
+    cancellation since every term is >= 0), doubled for safety."""
+    n = int(dim) + 3
+    return 2.0 * n * U32 / (1.0 - n * U32)
+
+
+def gemm_delta(qn: np.ndarray, tn_max: float, dim: int) -> np.ndarray:
+    """Absolute error bound ``(Q,)`` float64 of the squared L2 distances formed from a float32 GEMM,
+    ``max(|q|^2 + |t|^2 - 2 q.t, 0)`` with float32 norms, for queries of squared norms ``qn`` against targets of
+    squared norm at most ``tn_max``: ``|fl(q.t) - q.t| <= gamma_D |q||t| <= gamma_D (|q|^2 + |t|^2) / 2`` for any
+    summation order, the norms within ``gamma_D`` relative, the two additions one rounding each of a value below
+    ``3 (|q|^2 + |t|^2)``: in all below ``2 gamma_{D+3} (|q|^2 + |t|^2)``; doubled for safety."""
+    n = int(dim) + 3
+    g = n * U32 / (1.0 - n * U32)
+    return 4.0 * g * (np.asarray(qn, np.float64) + float(tn_max))
+
+
+@njit(cache=True, nogil=True)
+def _sqdist(a, b):
+    # float64 differences squared, added in index order; no fast-math: no reassociation, no contraction
+    s = 0.0
+    for k in range(a.shape[0]):
+        d = np.float64(a[k]) - np.float64(b[k])
+        s += d * d
+    return s
+
+
+@njit(cache=True, nogil=True)
+def sqdist_rows(q, t, cand):
+    """Exact squared L2 distances ``(Q, C) float64`` of query rows ``q (Q, D)`` to target rows ``t[cand[i, c]]``
+    (``inf`` where ``cand < 0``), each summed in index order in float64 (see the module doc)."""
+    nq, nc = cand.shape
+    out = np.empty((nq, nc), np.float64)
+    for i in range(nq):
+        for c in range(nc):
+            j = cand[i, c]
+            out[i, c] = _sqdist(q[i], t[j]) if j >= 0 else np.inf
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _refine(q, t, cand, approx, m, delta, gamma):
+    """Exact top ``m`` of each row's candidates and whether the row's candidate set is certified."""
+    nq, nk = cand.shape
+    idx = np.full((nq, m), -1, np.int64)
+    dist = np.full((nq, m), np.inf, np.float64)
+    ok = np.ones(nq, np.bool_)
+    for i in range(nq):
+        nvalid = 0
+        for c in range(nk):
+            j = cand[i, c]
+            if j < 0:
+                continue
+            nvalid += 1
+            v = _sqdist(q[i], t[j])
+            # insertion into the row's top m by (distance, index)
+            p = m
+            while p > 0 and (dist[i, p - 1] > v or (dist[i, p - 1] == v and (idx[i, p - 1] > j or idx[i, p - 1] < 0))):
+                p -= 1
+            if p < m:
+                for r in range(m - 1, p, -1):
+                    dist[i, r] = dist[i, r - 1]
+                    idx[i, r] = idx[i, r - 1]
+                dist[i, p] = v
+                idx[i, p] = j
+        if nvalid >= nk and nk > m:  # fewer than K returned: the whole domain was returned
+            am = np.float64(approx[i, m - 1])
+            ak = np.float64(approx[i, nk - 1])
+            ok[i] = (ak - delta[i]) / (1.0 + gamma) > (am + delta[i]) / (1.0 - gamma)
+        elif nvalid >= nk:
+            ok[i] = False
+    return idx, dist, ok
+
+
+def exact_top(q: np.ndarray, t: np.ndarray, cand: np.ndarray, approx: np.ndarray, m: int = 2, *,
+              delta: np.ndarray | float = 0.0, gamma: float = 0.0, domain=None):
+    """Exact top ``m`` of each query among its fast search's candidates, certified (see the module doc).
+
+    Args:
+        q: ``(Q, D)`` query descriptors; t: ``(N, D)`` target descriptors (float32 or any numeric dtype).
+        cand: ``(Q, K) int64`` target indices a fast search returned, nearest first by its own distances ``approx
+            (Q, K)`` (ascending; ``-1`` / ``inf`` past the number found). A row with fewer than K found means the
+            search returned its whole domain.
+        m: how many nearest to return (< K for a certificate).
+        delta, gamma: the search's error bound ``|~d - d| <= delta + gamma d`` (``delta`` scalar or ``(Q,)``).
+        domain: ``domain(i) -> (n,) int64`` target indices of query ``i``'s whole search domain (default: all of
+            ``t``), recomputed exactly for a row whose candidates are not certified.
+
+    Returns:
+        ``(idx (Q, m) int64, sq (Q, m) float64)``: exact squared L2 distances, ascending, equal ones by index.
+    """
+    q = np.ascontiguousarray(q)
+    nq = len(q)
+    cand = np.ascontiguousarray(cand, np.int64).reshape(nq, -1)
+    approx = np.ascontiguousarray(approx, np.float64).reshape(nq, -1)
+    d = np.broadcast_to(np.asarray(delta, np.float64), (nq,)).copy()
+    idx, sq, ok = _refine(q, t, cand, approx, int(m), d, float(gamma))
+    for i in np.flatnonzero(~ok):
+        FALLBACKS[0] += 1
+        js = np.arange(len(t), dtype=np.int64) if domain is None else np.asarray(domain(int(i)), np.int64)
+        idx[i], sq[i] = exact_top_among(q[i], t, js, m)
+    return idx, sq
+
+
+def exact_top_among(qrow: np.ndarray, t: np.ndarray, js: np.ndarray, m: int = 2):
+    """Exact top ``m`` of one query row among targets ``js``: ``(idx (m,), sq (m,) float64)`` (``-1`` / ``inf``
+    past ``len(js)``), equal distances by the lower index."""
+    js = np.unique(np.asarray(js, np.int64))  # ascending: a stable sort by distance keeps equal ones by index
+    out_i = np.full(m, -1, np.int64)
+    out_d = np.full(m, np.inf, np.float64)
+    if len(js):
+        dd = sqdist_rows(np.ascontiguousarray(qrow)[None], t, js[None])[0]
+        o = np.argsort(dd, kind="stable")[:m]
+        out_i[:len(o)], out_d[:len(o)] = js[o], dd[o]
+    return out_i, out_d
+
+
+def l2(sq: np.ndarray) -> np.ndarray:
+    """Reported L2 distances: ``float32(sqrt(sq))`` of float64 squared distances (``inf`` stays ``inf``). For an
+    integer ``sq`` below 2^24 this equals float32's own square root of it (rounding a float64 square root to float32
+    is correctly rounded), so byte-valued descriptors report what they always did."""
+    return np.sqrt(np.asarray(sq, np.float64)).astype(np.float32)
