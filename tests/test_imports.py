@@ -28,9 +28,6 @@ from pathlib import Path
 #: cycles known to be removed by separate work, each the exact set of its modules; delete the entry when it is gone
 #: (a listed cycle that no longer exists fails the test too, so the entry cannot outlive its cycle)
 EXPECTED_TO_BE_FIXED: dict[str, frozenset] = {
-    # the kernels' warm-up imports the matcher it warms up, the matcher imports the warm-up: being replaced by a
-    # registry the matcher fills (the matcher subpackage work); delete this entry once that is merged
-    "jit<->matcher": frozenset({"guidedmatch.jit", "guidedmatch.matcher"}),
 }
 
 
