@@ -202,8 +202,6 @@ def _work(task: tuple) -> dict:
         opts.camera_model = camera_model
         cam = pycolmap.infer_camera_from_image(str(path), opts)
         focal, prior = float(cam.mean_focal_length()), bool(cam.has_prior_focal_length)
-    if not len(kp):
-        return {"name": name, "error": f"no features detected in {path} (a blank or too small image?)"}
     return {"name": name, "width": w, "height": h, "keypoints": kp, "descriptors": desc, "type": dtype,
             "exif_key": key if prior else None, "focal": focal, "prior": prior, "time_s": time.perf_counter() - t0}
 
@@ -291,7 +289,7 @@ def extract_folder(image_dir: str | os.PathLike, database: str | os.PathLike, na
             if "fatal" in r:
                 raise r["fatal"]
             if "error" not in r and shared is not None and (shared[0].width, shared[0].height) != (r["width"], r["height"]):
-                r["error"] = (f"{root / name} is {r['width']}x{r['height']}, but the shared camera is "
+                r["error"] = (f"single_camera: {root / name} is {r['width']}x{r['height']}, but the shared camera is "
                               f"{shared[0].width}x{shared[0].height}")
             if "error" in r:
                 if bad_images == "refuse":

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, DatabaseError, ImageReadError, InputError, OutputError
+from ..errors import DatabaseError, ImageReadError, InputError, OutputError
 from ..features import BINARY_KINDS, DETECTORS, Features
 from .image_folder import IMAGE_EXTENSIONS
 

@@ -160,10 +160,12 @@ def run_extract(image_dir: str | os.PathLike, database: str | os.PathLike, confi
 
 
 def run_map(database: str | os.PathLike, image_dir: str | os.PathLike, out: str | os.PathLike,
-            config: SfmConfig | dict | None = None, colmap_log: bool = False) -> dict:
+            config: SfmConfig | dict | None = None, colmap_log: bool = False,
+            fixed_intrinsics: bool | None = None) -> dict:
     """``guidedmatch map DATABASE IMAGE_DIR OUT``: stage 3 of :func:`main` alone -- the models into ``OUT/<k>``
     (largest first) and ``OUT/mapping.json``. A rerun on an unchanged database with the same settings reuses the
-    model. Returns the stage record."""
+    model. ``fixed_intrinsics`` (default: whether ``config.camera`` is given) holds the cameras' intrinsics fixed in
+    bundle adjustment. Returns the stage record."""
     from ..errors import DatabaseError
     from ..features import writable_folder
 
@@ -181,7 +183,7 @@ def run_map(database: str | os.PathLike, image_dir: str | os.PathLike, out: str 
         raise OutputError(f"cannot write the models into {out}: it exists and is not a folder")
     writable_folder(out.parent if str(out.parent) else Path("."), "OUT")
     with colmap_log_level(0 if colmap_log else 1):
-        rec = map_main(conf, paths)
+        rec = map_main(conf, paths, fixed_intrinsics=fixed_intrinsics)
     return rec
 
 

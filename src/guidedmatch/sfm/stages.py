@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DatabaseError, InputError, OutputError
+from ..errors import DatabaseError, OutputError
 from .config import COLMAP_MAX_IMAGE_SIZE, VERIFIED_CONFIGS, SfmConfig, SfmPaths, parse_camera, say
 
 __all__ = ["check_output", "extract_main", "match_main", "map_main", "run_mapping", "reconstruction_stats",
@@ -194,7 +194,8 @@ def extract_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
                              camera=parse_camera(conf.camera), single_camera=conf.single_camera, workers=workers,
                              bad_images=conf.bad_images, progress=conf.progress)
         after = _db_image_names(paths.database)
-    skipped = out["skipped"]
+    skipped = out["skipped"] + [{"name": n, "reason": "no features detected (a blank or too small image?)"}
+                                for n in names if n in after and after[n] == 0]
     counts = [after[n] for n in names if after.get(n, 0) > 0]
     record.update({"time_s": time.perf_counter() - t0, "detector": conf.detector, "extracted": out["extracted"],
                    "reused": out["reused"], "skipped": skipped, "failed": [s["name"] for s in skipped],
@@ -400,11 +401,12 @@ def reconstruction_stats(rec: Any) -> dict:
             "registered_names": sorted(rec.image(i).name for i in rec.reg_image_ids())}
 
 
-def map_main(conf: SfmConfig, paths: SfmPaths) -> dict:
+def map_main(conf: SfmConfig, paths: SfmPaths, fixed_intrinsics: bool | None = None) -> dict:
     """Stage 3: mapping from the database. A model in ``paths.sparse`` made from a database with the same
     :func:`database_summary` and the same mapping settings is reused (``reused: True``); otherwise the mapper runs
     and the previous model is replaced when it is done."""
-    key = {"database": database_summary(paths.database), "settings": conf.mapping_settings()}
+    fixed = conf.camera is not None if fixed_intrinsics is None else bool(fixed_intrinsics)
+    key = {"database": database_summary(paths.database), "settings": dict(conf.mapping_settings(), fixed=fixed)}
     record: dict = {}
     with peak_memory(record):
         try:
@@ -420,7 +422,7 @@ def map_main(conf: SfmConfig, paths: SfmPaths) -> dict:
             say(conf, f"[3/3] mapping (pycolmap.{conf.mapper}_mapping)")
             result = dict(run_mapping(paths.database, paths.image_dir, paths.sparse, mapper=conf.mapper,
                                       num_threads=conf.num_threads, seed=conf.seed,
-                                      fixed_intrinsics=conf.camera is not None, record=key), reused=False)
+                                      fixed_intrinsics=fixed, record=key), reused=False)
     return dict(result, **record)
 
 
