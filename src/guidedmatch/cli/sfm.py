@@ -67,7 +67,8 @@ def _skipped_lines(skipped) -> None:
 
 def _peak(rec: dict) -> str:
     m = rec.get("peak_rss_mb") or {}
-    return f"peak memory {m.get('self', 0):,.0f} MB (largest worker process {m.get('children', 0):,.0f} MB)"
+    kids = f" (largest worker process {m['children']:,.0f} MB)" if m.get("children") else ""
+    return f"peak memory {m.get('self', 0):,.0f} MB{kids}"
 
 
 def cmd_extract(args) -> int:

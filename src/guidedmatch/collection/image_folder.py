@@ -18,7 +18,8 @@ camera (make, model, focal length, size) share a camera; ``single_camera`` share
 params)`` gives every image that known camera. One rig and one frame per camera/image, like COLMAP.
 
 Workers: pycolmap's extractor holds the GIL, so images are decoded and extracted in worker processes (``spawn``;
-one image each at a time, at most ``2 x workers`` results waiting) and written by this process, one transaction
+one image each at a time, at most ``2 x workers`` results waiting; in this process when there are fewer than
+:data:`IN_PROCESS_MAX_MP` megapixels to extract) and written by this process, one transaction
 per image, in name order: an interrupted run leaves a valid database with the images done so far, and a rerun
 extracts only the images without keypoints.
 """
@@ -206,6 +207,31 @@ def _work(task: tuple) -> dict:
             "exif_key": key if prior else None, "focal": focal, "prior": prior, "time_s": time.perf_counter() - t0}
 
 
+def _init_worker(log_level: int) -> None:
+    import pycolmap
+
+    pycolmap.logging.minloglevel = log_level   # COLMAP's log level of the parent (its INFO lines silenced or not)
+
+
+def _megapixels(paths) -> float:
+    """Total image area (header only, Pillow); an image whose header Pillow cannot read counts as 12 MP."""
+    from PIL import Image
+
+    total = 0.0
+    for p in paths:
+        try:
+            with Image.open(p) as im:
+                total += im.size[0] * im.size[1] / 1e6
+        except Exception:  # noqa: BLE001 - the strict decode reports it later
+            total += 12.0
+    return total
+
+
+#: Below this many megapixels to extract, images are extracted in this process: starting a worker process (imports
+#: of pycolmap and OpenCV) costs ~2 s, about what COLMAP's SIFT takes on 2 MP with one core.
+IN_PROCESS_MAX_MP = 8.0
+
+
 def _results(tasks: list, workers: int):
     """The worker results in task order (a process pool when ``workers > 1``, bounded look-ahead)."""
     if workers <= 1 or len(tasks) <= 1:
@@ -216,7 +242,10 @@ def _results(tasks: list, workers: int):
     from collections import deque
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    import pycolmap
+
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+                             initargs=(int(pycolmap.logging.minloglevel),)) as pool:
         pending, it = deque(), iter(tasks)
         try:
             for t in it:
@@ -268,6 +297,8 @@ def extract_folder(image_dir: str | os.PathLike, database: str | os.PathLike, na
         done = {n for n, im in existing.items() if db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id)}
         todo = [n for n in names if n not in done]
         workers = max(1, min(int(workers), len(todo)))
+        if workers > 1 and _megapixels(root / n for n in todo) < IN_PROCESS_MAX_MP:
+            workers = 1
         skipped: list[dict] = []
         if todo and bad_images == "refuse":
             bad = [r for r in _results([(root / n, n, spec, camera_model, True) for n in todo], workers)

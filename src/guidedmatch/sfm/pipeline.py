@@ -181,7 +181,16 @@ def run_map(database: str | os.PathLike, image_dir: str | os.PathLike, out: str 
         from ..errors import OutputError
 
         raise OutputError(f"cannot write the models into {out}: it exists and is not a folder")
-    writable_folder(out.parent if str(out.parent) else Path("."), "OUT")
+    writable_folder(out, "OUT")
+    from .stages import database_summary
+
+    try:
+        summary = database_summary(paths.database)
+    except Exception as exc:  # noqa: BLE001 - pycolmap raises RuntimeError subclasses for any SQLite problem
+        raise DatabaseError(f"{paths.database}: not a readable COLMAP database ({exc})") from None
+    if not summary["geometries"]:
+        raise InputError(f"{paths.database} has no image pairs with a two-view geometry: nothing to map; match it "
+                         f"first (guidedmatch colmap {paths.database})")
     with colmap_log_level(0 if colmap_log else 1):
         rec = map_main(conf, paths, fixed_intrinsics=fixed_intrinsics)
     return rec

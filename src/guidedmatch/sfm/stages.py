@@ -354,6 +354,8 @@ def run_mapping(database: str | os.PathLike, image_dir: str | os.PathLike, spars
         opts.num_threads = num_threads
         opts.random_seed = seed
         opts.mapper.random_seed = seed
+        opts.mapper.global_positioning.use_gpu = False   # CPU solvers (no warning about a missing CUDA build)
+        opts.mapper.bundle_adjustment.ceres.use_gpu = False
         if fixed_intrinsics:
             ba = opts.mapper.bundle_adjustment
             ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
