@@ -116,6 +116,7 @@ def cmd_sfm(args) -> int:
                      colmap_log=args.colmap_log)
     if args.quiet:   # the summary line went to stderr with the progress; say the essentials once
         print(report["summary"])
+    _skipped_lines(report["skipped_images"])
     if report["registered"] < 2:
         print(f"guidedmatch: no reconstruction: the mapper registered {report['registered']} of {report['num_images']} "
               f"images (too few verified pairs; see {Path(args.out_dir) / 'report.md'})", file=sys.stderr)

@@ -147,12 +147,10 @@ def check_output(conf: SfmConfig, paths: SfmPaths, project_path: Path, *, matchi
     candidates = (project_path, paths.database.parent / "sfm_project.json", project_file(paths.database))
     old = next((r for r in map(_read_project, candidates) if r is not None), None)
     if paths.database.exists():
-        in_db = _db_image_names(paths.database)
-        if old is None:
-            if not in_db:
-                return project   # an empty database (e.g. created by an interrupted first run)
+        if old is None:   # (the record is written before the database is created)
             raise OutputError(f"{paths.database} exists but was not made by guidedmatch (no {project_path.name}); "
                               "refusing to touch another project's database: use a new output path")
+        in_db = _db_image_names(paths.database)
         if old.get("image_dir") != str(paths.image_dir):
             raise OutputError(f"{paths.database} belongs to the images in {old.get('image_dir')}, not {paths.image_dir}; "
                               "use a new output path")
@@ -187,7 +185,7 @@ def extract_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
         todo = [n for n in names if before.get(n, 0) == 0]
         workers = (os.cpu_count() or 1) if conf.num_threads == -1 else conf.num_threads
         say(conf, f"[1/3] extraction ({conf.detector}): {len(todo)} image(s) to extract, {len(names) - len(todo)} "
-                  f"reused" + (f", {min(workers, len(todo))} processes" if len(todo) > 1 and workers > 1 else ""))
+                  "reused")
         spec = ExtractorSpec(detector=conf.detector, max_features=conf.max_features,
                              max_image_size=conf.max_image_size, peak_threshold=conf.peak_threshold)
         out = extract_folder(paths.image_dir, paths.database, names, spec, camera_model=conf.camera_model,
