@@ -156,24 +156,21 @@ def _setup(args, output: Path, open_source, spec: str):
 
 
 def cmd_colmap(args) -> int:
-    from ..collection.engine import match_collection
-    from ..collection.sinks import ColmapSink
     from ..collection.sources import ColmapSource
+    from ..sfm.stages import match_into_database
 
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
         raise ConfigError(f"--max-inliers-per-pair must be >= 0 (0 = all inliers); got {args.max_inliers_per_pair}")
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
-    with ColmapSink(db, geometry=args.geometry) as sink:
-        report = match_collection(source, pairs, sink, cfg)
-        if args.geometry == "colmap" and report.done:
-            n = sink.verify()
-            print(f"verified   : {n} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
-        if args.max_inliers_per_pair:
-            cap = sink.cap_inliers(args.max_inliers_per_pair)
-            print(f"mapper     : {cap['inliers_after']:,} of {cap['inliers_before']:,} inliers kept (at most "
-                  f"{cap['max_inliers']} per pair, spread; {cap['pairs_capped']} pairs capped, {cap['time_s']:.2f} s)")
-    status = _finish(report, cfg.log_path, args.timeline)
+    done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
+                               max_inliers_per_pair=args.max_inliers_per_pair)
+    if done["verified"] is not None:
+        print(f"verified   : {done['verified']} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
+    if (cap := done["inlier_cap"]) is not None:
+        print(f"mapper     : {cap['inliers_after']:,} of {cap['inliers_before']:,} inliers kept (at most "
+              f"{cap['max_inliers']} per pair, spread; {cap['pairs_capped']} pairs capped, {cap['time_s']:.2f} s)")
+    status = _finish(done["report"], cfg.log_path, args.timeline)
     print(f"next       : guidedmatch map {db} IMAGE_DIR OUT_DIR   (pycolmap's mapper; or colmap mapper "
           f"--database_path {db} --image_path IMAGE_DIR --output_path OUT_DIR)")
     return status

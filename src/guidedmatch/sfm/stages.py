@@ -27,7 +27,7 @@ import numpy as np
 from ..errors import DatabaseError, OutputError
 from .config import COLMAP_MAX_IMAGE_SIZE, VERIFIED_CONFIGS, SfmConfig, SfmPaths, parse_camera, say
 
-__all__ = ["check_output", "extract_main", "match_main", "map_main", "run_mapping", "reconstruction_stats",
+__all__ = ["check_output", "extract_main", "match_main", "match_into_database", "map_main", "run_mapping", "reconstruction_stats",
            "database_pair_stats", "verified_inliers", "extract_colmap_sift", "database_summary", "peak_memory", "make_folder"]
 
 
@@ -239,14 +239,37 @@ def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLik
 
 
 # --------------------------------------------------------------------------- stage 2: matching
-def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
-    """Stage 2: match the pair list with the collection engine into the database (pairs already there skipped);
-    with ``geometry="colmap"`` pycolmap's verification runs afterwards on the pairs without a geometry."""
-    import pycolmap
-
-    from ..collection.engine import CollectionConfig, match_collection
-    from ..collection.pairs import pairs_from_spec
+def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
+                        max_inliers_per_pair: int = 0) -> dict:
+    """The matching stage's work, shared by ``guidedmatch colmap`` and :func:`match_main`: the collection engine over
+    ``pairs`` into the COLMAP ``database`` (pairs already there skipped); with ``geometry="colmap"`` pycolmap's
+    verification of the pairs without a geometry; then at most ``max_inliers_per_pair`` inliers per pair for the
+    mapper (0: all). Returns ``{"report": CollectionReport, "match_time_s", "verified" (pairs verified by COLMAP
+    now, or None), "verify_time_s", "inlier_cap" (the cap's record or None)}``."""
+    from ..collection.engine import match_collection
     from ..collection.sinks import ColmapSink
+
+    t0 = time.perf_counter()
+    verified, t_verify, cap = None, 0.0, None
+    with ColmapSink(database, geometry=geometry) as sink:
+        report = match_collection(source, pairs, sink, cconf)
+        t_match = time.perf_counter() - t0
+        if geometry == "colmap":
+            t1 = time.perf_counter()
+            verified = sink.verify()   # COLMAP's default verification, of every pair still without a geometry
+            t_verify = time.perf_counter() - t1
+        # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
+        # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
+        if max_inliers_per_pair:
+            cap = sink.cap_inliers(max_inliers_per_pair)
+    return {"report": report, "match_time_s": t_match, "verified": verified, "verify_time_s": t_verify,
+            "inlier_cap": cap}
+
+
+def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
+    """Stage 2: match the pair list with the collection engine into the database (:func:`match_into_database`)."""
+    from ..collection.engine import CollectionConfig
+    from ..collection.pairs import pairs_from_spec
     from ..collection.sources import ColmapSource
 
     record: dict = {}
@@ -259,26 +282,19 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
                       f"({conf.pairs})")
             cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
                                      scheduler=conf.scheduler, progress=conf.progress, log_path=str(paths.pair_log))
-            with ColmapSink(paths.database, geometry=conf.geometry) as sink:
-                report = match_collection(source, pair_list.pairs, sink, cconf)
-                t_match = time.perf_counter() - t0
-                t_verify = 0.0
-                if conf.geometry == "colmap":
-                    t1 = time.perf_counter()
-                    sink.verify(pycolmap.TwoViewGeometryOptions())   # COLMAP's default verification
-                    t_verify = time.perf_counter() - t1
-                # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
-                # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
-                cap = sink.cap_inliers(conf.max_inliers_per_pair) if conf.max_inliers_per_pair else None
+            done = match_into_database(source, pair_list.pairs, paths.database, cconf, geometry=conf.geometry,
+                                       max_inliers_per_pair=conf.max_inliers_per_pair)
         finally:
             source.close()
         pairs = database_pair_stats(paths.database)
+    cap = done["inlier_cap"]
     if cap is not None:
         say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
                   f"{cap['max_inliers']} per pair; {cap['pairs_capped']} pairs capped)")
-    record.update({"time_s": time.perf_counter() - t0, "match_time_s": t_match, "verify_time_s": t_verify,
-                   "inlier_cap": cap, "pairs": len(pair_list.pairs), "pair_list_report": pair_list.report,
-                   "collection": report.to_dict(), "verified_pairs": sum(p["verified"] for p in pairs),
+    record.update({"time_s": time.perf_counter() - t0, "match_time_s": done["match_time_s"],
+                   "verify_time_s": done["verify_time_s"], "inlier_cap": cap, "pairs": len(pair_list.pairs),
+                   "pair_list_report": pair_list.report, "collection": done["report"].to_dict(),
+                   "verified_pairs": sum(p["verified"] for p in pairs),
                    "verified_inliers": sum(p["inliers"] for p in pairs), "raw_matches": sum(p["matches"] for p in pairs)})
     return record
 
