@@ -218,3 +218,18 @@ def test_a_refused_write_anywhere_is_exit_2_naming_the_path(capsys, monkeypatch)
     assert main(["experiment", "alignment"]) == 2
     err = capsys.readouterr().err
     assert err == "guidedmatch: error: No space left on device: /data/out/report.json\n"
+
+
+@pytest.mark.parametrize("out", ["/proc/m.h5", "/sys/m.h5", "{blocker}/m.h5"])
+def test_hloc_matches_file_that_cannot_be_written_is_exit_2(tmp_path, capsys, out):
+    from guidedmatch.collection.sources import write_features_h5
+    from guidedmatch.features import Features
+
+    rng = np.random.default_rng(0)
+    write_features_h5(tmp_path / "f.h5", {n: Features(rng.uniform(0, 99, (50, 2)), rng.normal(size=(50, 128))
+                                                      .astype(np.float32), (100, 100), "sift") for n in "ab"})
+    (tmp_path / "file").write_text("x")
+    out = out.format(blocker=tmp_path / "file")
+    assert main(["hloc", str(tmp_path / "f.h5"), "exhaustive", out, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("guidedmatch: error:") and err.count("\n") == 1 and out.rsplit("/", 1)[0] in err, err

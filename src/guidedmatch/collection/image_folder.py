@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, DatabaseError, GuidedMatchError, ImageReadError, InputError
+from ..errors import ConfigError, DatabaseError, GuidedMatchError, ImageReadError, InputError, MemoryLimitError
 
 __all__ = ["IMAGE_EXTENSIONS", "ExtractorSpec", "list_images", "decode_image", "extract_image", "extract_folder",
            "COLMAP_MAX_IMAGE_SIZE"]
@@ -241,6 +241,7 @@ def _results(tasks: list, workers: int):
     import multiprocessing
     from collections import deque
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
     import pycolmap
 
@@ -254,6 +255,10 @@ def _results(tasks: list, workers: int):
                     yield pending.popleft().result()
             while pending:
                 yield pending.popleft().result()
+        except BrokenProcessPool:
+            raise MemoryLimitError("an extraction worker process died (killed by the system: out of memory?); the "
+                                   "images written so far are kept: rerun with fewer processes (--threads 1) or a "
+                                   "smaller --max-image-size") from None
         finally:
             for f in pending:
                 f.cancel()

@@ -100,7 +100,8 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     report = {"image_dir": str(paths.image_dir), "out_dir": str(paths.out_dir), "command": command,
               "config": dataclasses.asdict(conf), "num_images": len(names), "skipped_images": skipped,
               "stages": stages, "total_time_s": time.perf_counter() - t_start,
-              "peak_rss_mb": max(max(s["peak_rss_mb"]["self"], s["peak_rss_mb"]["children"]) for s in stages.values()),
+              "peak_rss_mb": max(max(s["peak_rss_mb"]["self"], s["peak_rss_mb"]["children"] or 0)
+                                 for s in stages.values()),
               "mapper": mapping["mapper"], "models": [{k: m[k] for k in ("path", "registered", "points3D",
                                                                           "registered_names")} for m in models],
               "registered": best["registered"] if best else 0, "points3D": best["points3D"] if best else 0,
@@ -134,6 +135,8 @@ def summary_line(report: dict) -> str:
 def run_sfm(image_dir: str | os.PathLike, out_dir: str | os.PathLike, config: SfmConfig | dict | None = None,
             command: str = "", colmap_log: bool = False) -> dict:
     """``guidedmatch sfm IMAGE_DIR OUT_DIR`` as a function: :func:`main` with :class:`SfmPaths`.
+
+    The extraction may start worker processes (``spawn``): in a script, call it under ``if __name__ == "__main__":``.
 
     COLMAP's own INFO log lines (thousands for a mapping run) are silenced unless ``colmap_log``; its warnings and
     errors still show."""

@@ -76,7 +76,7 @@ def _fmt_s(v: float) -> str:
 
 def _mem(st: dict) -> str:
     m = st.get("peak_rss_mb") or {}
-    return f"{m.get('self', 0):,.0f} / {m.get('children', 0):,.0f}" if m else ""
+    return f"{m.get('self', 0):,.0f} / {m['children']:,.0f}" if m.get("children") else f"{m.get('self', 0):,.0f}"
 
 
 def report_markdown(report: dict) -> str:
@@ -84,7 +84,7 @@ def report_markdown(report: dict) -> str:
     st = report["stages"]
     lines = [f"# guidedmatch sfm: {report['image_dir']}", "",
              f"Command: `{report.get('command', '')}`  ", f"Finished: {report['meta'].get('timestamp_utc')}", "",
-             "| stage | time (s) | peak memory (MB): this process / largest child | details |", "|---|---|---|---|"]
+             "| stage | time (s) | peak memory (MB): this process / its largest worker process | details |", "|---|---|---|---|"]
     ex = st["extraction"]
     lines.append(f"| extraction ({ex['detector']}) | {_fmt_s(ex['time_s'])} | {_mem(ex)} | {ex['extracted']} extracted, "
                  f"{ex['reused']} reused, {len(ex.get('skipped', []))} skipped, keypoints median "

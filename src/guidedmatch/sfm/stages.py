@@ -47,9 +47,11 @@ def _vm_hwm_mb() -> float | None:
 def peak_memory(record: dict):
     """Store in ``record["peak_rss_mb"]`` the peak resident memory (MB) of this process during the block
     (``self``; ``self_reset`` False: since the process started, where ``/proc/self/clear_refs`` cannot reset it) and
-    the largest peak of any child process that ended so far (``children``, ``getrusage(RUSAGE_CHILDREN)``)."""
+    of the child processes (``getrusage(RUSAGE_CHILDREN)``, the largest peak of any child that ended so far:
+    ``children_so_far``; ``children``: that figure when a child of this block raised it, else None)."""
     import resource
 
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     reset = False
     try:
         with open("/proc/self/clear_refs", "w") as fh:
@@ -63,8 +65,10 @@ def peak_memory(record: dict):
         own = _vm_hwm_mb()
         if own is None:
             own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
         record["peak_rss_mb"] = {"self": round(own, 1), "self_reset": reset,
-                                 "children": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0, 1)}
+                                 "children": round(kids / 1024.0, 1) if kids > before else None,
+                                 "children_so_far": round(kids / 1024.0, 1)}
 
 
 # --------------------------------------------------------------------------- project records and output checks
