@@ -15,7 +15,8 @@ whatever the extractor would have made of it. The decoded pixels go straight to 
 Cameras as COLMAP's image reader makes them: ``camera_model`` with the EXIF focal length when the file has one
 (``pycolmap.infer_camera_from_image``; a prior focal length) or ``1.2 max(w, h)`` otherwise; images of the same EXIF
 camera (make, model, focal length, size) share a camera; ``single_camera`` shares one camera; ``camera=(model,
-params)`` gives every image that known camera. One rig and one frame per camera/image, like COLMAP.
+params)`` gives every image that known camera. One rig and one frame per camera/image, like COLMAP. (Not copied
+from COLMAP's reader: GPS pose priors from EXIF and masks.)
 
 Workers: pycolmap's extractor holds the GIL, so images are decoded and extracted in worker processes (``spawn``;
 one image each at a time, at most ``2 x workers`` results waiting; in this process when there are fewer than
@@ -204,7 +205,7 @@ def _work(task: tuple) -> dict:
         cam = pycolmap.infer_camera_from_image(str(path), opts)
         focal, prior = float(cam.mean_focal_length()), bool(cam.has_prior_focal_length)
     return {"name": name, "width": w, "height": h, "keypoints": kp, "descriptors": desc, "type": dtype,
-            "exif_key": key if prior else None, "focal": focal, "prior": prior, "time_s": time.perf_counter() - t0}
+            "exif_key": key, "focal": focal, "prior": prior, "time_s": time.perf_counter() - t0}
 
 
 def _init_worker(log_level: int) -> None:
