@@ -100,7 +100,7 @@ def report_markdown(report: dict) -> str:
                     f"this run: {ic['inliers_before']:,} -> {ic['inliers_after']:,})" if (ic := ma.get("inlier_cap")) else "")
                  + " |")
     mp = st["mapping"]
-    lines.append(f"| mapping ({mp.get('mapper', 'incremental')}) | {_fmt_s(mp['time_s'])} | {_mem(mp)} | "
+    lines.append(f"| mapping | {_fmt_s(mp['time_s'])} | {_mem(mp)} | {mp.get('mapper', 'incremental')} mapper, "
                  f"{len(mp['models'])} model(s)" + (", reused (same database and settings)" if mp.get("reused") else "")
                  + " |")
     lines.append(f"| total | {_fmt_s(report['total_time_s'])} | {report.get('peak_rss_mb', '')} | |")
