@@ -12,7 +12,7 @@ from .common import parse_kv, positive_int
 __all__ = ["add_commands", "cmd_extract", "cmd_map", "cmd_sfm", "add_extraction_options", "add_mapping_options"]
 
 BAD_IMAGES_HELP = ("what to do with an image that does not decode completely (truncated, corrupt, not an image): "
-                   "skip (default: left out, named with the reason on stderr and in the report) or refuse (exit 2 "
+                   "skip (default: left out, named with the reason in the output and in sfm's report) or refuse (exit 2 "
                    "naming it, before any feature is written; every image is decoded once more for that check)")
 
 
