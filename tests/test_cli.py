@@ -58,7 +58,8 @@ def test_errors_are_one_line_without_traceback(image_files, capsys, args, msg):
 
 
 def test_help_for_every_command(capsys):
-    for cmd in (["--help"], ["match", "--help"], ["demo", "--help"], ["experiment", "--help"], ["bench", "--help"]):
+    for cmd in (["--help"], ["match", "--help"], ["demo", "--help"], ["experiment", "--help"], ["bench", "--help"],
+                ["colmap", "--help"], ["hloc", "--help"], ["extract", "--help"], ["map", "--help"], ["sfm", "--help"]):
         with pytest.raises(SystemExit) as e:
             main(cmd)
         assert e.value.code == 0
@@ -152,3 +153,83 @@ def test_unwritable_output_is_a_user_error_before_any_work(image_files, tmp_path
         err = capsys.readouterr().err
         assert err.startswith("guidedmatch: error: cannot ") and err.count("\n") == 1
         assert str(blocker) in err and ".tmp" not in err  # names the user's path, not an internal temp file
+
+
+def test_debug_is_accepted_after_the_subcommand(image_files, capsys, monkeypatch):
+    """--debug before or after the subcommand shows the traceback; without it, one line."""
+    import guidedmatch.matcher as matcher
+
+    def boom(*a, **k):
+        raise RuntimeError("simulated bug")
+
+    monkeypatch.setattr(matcher, "match", boom)
+    args = ["match", str(image_files / "a.png"), str(image_files / "b.png"), "--max-features", "200"]
+    with pytest.raises(RuntimeError, match="simulated bug"):
+        main(args + ["--debug"])
+    with pytest.raises(RuntimeError, match="simulated bug"):
+        main(["--debug"] + args)
+    assert main(args) == 1
+    missing = ["sfm", str(image_files / "nope"), str(image_files / "out")]
+    assert main(missing) == 2
+    from guidedmatch.errors import InputError
+
+    with pytest.raises(InputError, match="not found"):
+        main(missing + ["--debug"])
+
+
+@pytest.mark.parametrize("make", [
+    lambda d, blocker: ["sfm", str(d), str(blocker / "out")],
+    lambda d, blocker: ["sfm", str(d), "/proc/guidedmatch-out"],
+    lambda d, blocker: ["sfm", str(d), "/sys/guidedmatch-out"],
+    lambda d, blocker: ["extract", str(d), str(blocker / "db" / "database.db")],
+    lambda d, blocker: ["extract", str(d), "/proc/database.db"],
+    lambda d, blocker: ["map", str(blocker.parent / "x.db"), str(d), str(blocker / "sparse")],
+    lambda d, blocker: ["demo", "--out", "/proc/guidedmatch-demo"],
+    lambda d, blocker: ["bench", "oxford", "--out", str(blocker / "reports")],
+    lambda d, blocker: ["experiment", "alignment", "--out", "/sys/guidedmatch-exp"],
+])
+def test_output_folder_that_cannot_be_created_is_exit_2_with_path_and_reason(image_files, tmp_path, capsys, make):
+    import pycolmap
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    db = pycolmap.Database.open(str(tmp_path / "x.db"))   # a database with a geometry, for map
+    db.write_two_view_geometry(1, 2, pycolmap.TwoViewGeometry())
+    db.close()
+    args = make(image_files, blocker)
+    assert main(args) == 2, args
+    err = capsys.readouterr().err
+    assert err.startswith("guidedmatch: error: cannot ") and err.count("\n") == 1 and "Traceback" not in err, err
+    target = next(a for a in args if str(blocker) in a or a.startswith(("/proc", "/sys")))
+    assert target.split("/")[1] in err and ("not a folder" in err or "does not accept" in err), err
+
+
+def test_a_refused_write_anywhere_is_exit_2_naming_the_path(capsys, monkeypatch):
+    """The last line of defence: the system refusing a file operation mid-run (a folder that cannot be made, a full
+    disk) is the user's environment, not a bug: exit 2 with the reason and the path."""
+    import errno
+
+    import guidedmatch.cli.bench as bench
+
+    def refused(args):
+        raise OSError(errno.ENOSPC, "No space left on device", "/data/out/report.json")
+
+    monkeypatch.setattr(bench, "cmd_experiment", refused)
+    assert main(["experiment", "alignment"]) == 2
+    err = capsys.readouterr().err
+    assert err == "guidedmatch: error: No space left on device: /data/out/report.json\n"
+
+
+@pytest.mark.parametrize("out", ["/proc/m.h5", "/sys/m.h5", "{blocker}/m.h5"])
+def test_hloc_matches_file_that_cannot_be_written_is_exit_2(tmp_path, capsys, out):
+    from guidedmatch.collection.sources import write_features_h5
+    from guidedmatch.features import Features
+
+    rng = np.random.default_rng(0)
+    write_features_h5(tmp_path / "f.h5", {n: Features(rng.uniform(0, 99, (50, 2)), rng.normal(size=(50, 128))
+                                                      .astype(np.float32), (100, 100), "sift") for n in "ab"})
+    (tmp_path / "file").write_text("x")
+    out = out.format(blocker=tmp_path / "file")
+    assert main(["hloc", str(tmp_path / "f.h5"), "exhaustive", out, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("guidedmatch: error:") and err.count("\n") == 1 and out.rsplit("/", 1)[0] in err, err

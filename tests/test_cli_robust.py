@@ -1,4 +1,4 @@
-"""CLI behaviour on bad input and first runs (issue 14): strict reads, up-front checks, verdict, plots, JIT."""
+"""CLI behaviour on bad input and first runs: strict reads, up-front checks, verdict, plots, JIT."""
 import json
 
 import cv2

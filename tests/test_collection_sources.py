@@ -355,3 +355,109 @@ def test_colmap_float_descriptor_types(tmp_path):
     got = src.load("im1.png")
     assert src.descriptor_kind == "aliked_n32" and not got.binary and np.array_equal(got.descriptors, f)
     src.validate()
+
+
+# --------------------------------------------------------------------------- image folder: strict decode, extraction
+def _damaged_files(folder):
+    """A good JPEG and PNG, and damaged ones: truncated JPEG / PNG, corrupt JPEG data, text, empty."""
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (120, 160), np.uint8), (0, 0), 1.5)
+    folder.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(folder / "good.jpg"), img)
+    cv2.imwrite(str(folder / "good.png"), img)
+    jpg, png = (folder / "good.jpg").read_bytes(), (folder / "good.png").read_bytes()
+    (folder / "cut.jpg").write_bytes(jpg[: len(jpg) // 2])
+    (folder / "cut.png").write_bytes(png[: len(png) // 2])
+    bad = bytearray(jpg)
+    for k in range(40):
+        bad[len(bad) // 3 + 7 * k] ^= 0xFF
+    (folder / "noise.jpg").write_bytes(bytes(bad))
+    (folder / "text.jpg").write_text("not an image")
+    (folder / "empty.png").write_bytes(b"")
+    return ["cut.jpg", "cut.png", "empty.png", "noise.jpg", "text.jpg"]
+
+
+def test_decode_image_refuses_every_partial_decode(tmp_path):
+    """cv2.imread alone returns a partly grey image for a truncated JPEG (libjpeg only warns); the strict decode
+    refuses it, naming the file."""
+    from guidedmatch.collection.image_folder import decode_image
+
+    bad = _damaged_files(tmp_path)
+    partial = cv2.imread(str(tmp_path / "cut.jpg"), cv2.IMREAD_GRAYSCALE)
+    assert partial is not None and partial.shape == (120, 160)   # what a lenient reader would have used
+    for name in bad:
+        with pytest.raises(ImageReadError, match=name.replace(".", r"\.")):
+            decode_image(tmp_path / name, rgb=True)
+    rgb, grey = decode_image(tmp_path / "good.png", rgb=True), decode_image(tmp_path / "good.png", rgb=False)
+    assert rgb.shape == (120, 160, 3) and grey.shape == (120, 160)
+    assert np.array_equal(rgb[:, :, 0], grey) and np.array_equal(rgb[:, :, 2], grey)
+
+
+def test_extract_folder_skips_or_refuses_damaged_images(tmp_path):
+    """skip: the damaged images are listed by name with the reason, the good ones written; refuse: ImageReadError
+    naming each, before anything is written; a rerun reads nothing again."""
+    from guidedmatch.collection.image_folder import ExtractorSpec, extract_folder, list_images
+
+    bad = _damaged_files(tmp_path / "img")
+    names = list_images(tmp_path / "img")
+    spec = ExtractorSpec(detector="ours:sift", max_features=300)
+    with pytest.raises(ImageReadError) as e:
+        extract_folder(tmp_path / "img", tmp_path / "r.db", names, spec, bad_images="refuse", progress=False)
+    assert all(n in str(e.value) for n in bad)
+    db = pycolmap.Database.open(str(tmp_path / "r.db"))
+    assert db.num_images() == 0
+    db.close()
+    out = extract_folder(tmp_path / "img", tmp_path / "s.db", names, spec, progress=False)
+    assert sorted(s["name"] for s in out["skipped"]) == bad and out["extracted"] == 2
+    assert all("empty" in s["reason"] or "corrupt" in s["reason"] or "cannot read" in s["reason"]
+               for s in out["skipped"]), out["skipped"]
+    src = ColmapSource(tmp_path / "s.db")
+    assert src.names() == ["good.jpg", "good.png"] and src.num_features("good.png") > 50
+    src.close()
+    again = extract_folder(tmp_path / "img", tmp_path / "s.db", ["good.jpg", "good.png"], spec, progress=False)
+    assert again["extracted"] == 0 and again["reused"] == 2
+
+
+def test_images_to_database_skip_mode_lists_damaged_images(tmp_path):
+    bad = _damaged_files(tmp_path / "img")
+    with pytest.raises(ImageReadError):
+        images_to_database(tmp_path / "img", tmp_path / "a.db", progress=False)
+    src = images_to_database(tmp_path / "img", tmp_path / "b.db", progress=False, bad_images="skip")
+    assert src.names() == ["good.jpg", "good.png"] and sorted(s["name"] for s in src.skipped_images) == bad
+
+
+def test_worker_processes_write_the_same_database_as_one_process(tmp_path, monkeypatch):
+    """COLMAP SIFT in two spawned worker processes (forced: these images are below the in-process threshold) gives
+    the same images, cameras, keypoints and descriptors as extraction in this process; EXIF focal lengths give one
+    shared camera with a focal prior, as COLMAP's reader does."""
+    from PIL import Image
+
+    import guidedmatch.collection.image_folder as image_folder
+
+    mv = pytest.importorskip("guidedmatch.testing.multiview")
+    scene = mv.make_multiview(n_views=3, size=(320, 240), seed=0, isolated=False)
+    (tmp_path / "img").mkdir()
+    for i, img in enumerate(scene.images):
+        exif = Image.Exif()
+        exif[0x010F], exif[0x0110] = "Canon", "EOS 5D"
+        exif.get_ifd(0x8769)[41989] = 35   # focal length in 35 mm film
+        Image.fromarray(img).convert("RGB").save(tmp_path / "img" / f"{i}.jpg", exif=exif, quality=95)
+    names = ["0.jpg", "1.jpg", "2.jpg"]
+    spec = image_folder.ExtractorSpec()
+    one = image_folder.extract_folder(tmp_path / "img", tmp_path / "one.db", names, spec, workers=1, progress=False)
+    monkeypatch.setattr(image_folder, "IN_PROCESS_MAX_MP", 0.0)
+    two = image_folder.extract_folder(tmp_path / "img", tmp_path / "two.db", names, spec, workers=2, progress=False)
+    assert (one["workers"], two["workers"], one["extracted"], two["extracted"]) == (1, 2, 3, 3)
+    a, b = pycolmap.Database.open(str(tmp_path / "one.db")), pycolmap.Database.open(str(tmp_path / "two.db"))
+    try:
+        assert [(i.name, i.camera_id) for i in a.read_all_images()] == [(i.name, i.camera_id)
+                                                                       for i in b.read_all_images()]
+        cams = a.read_all_cameras()
+        assert len(cams) == 1 and cams[0].has_prior_focal_length
+        assert cams[0].params[0] == pytest.approx(35 / 43.27 * np.hypot(320, 240))   # COLMAP's 35 mm rule
+        for i in a.read_all_images():
+            np.testing.assert_array_equal(a.read_keypoints(i.image_id), b.read_keypoints(i.image_id))
+            np.testing.assert_array_equal(a.read_descriptors(i.image_id).data, b.read_descriptors(i.image_id).data)
+    finally:
+        a.close()
+        b.close()

@@ -43,7 +43,7 @@ def test_import_is_cheap():
 def test_no_module_imports_the_cli():
     """Only the console-script entry point runs the CLI; evaluation/ and the library take plain arguments."""
     for path in SRC.rglob("*.py"):
-        if path.name == "cli.py":
+        if path.name == "cli.py" or path.parent.name == "cli":
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from guidedmatch.errors import ConfigError
-from guidedmatch.sfm import SfmConfig, check_images, list_images, parse_camera
+from guidedmatch.sfm import SfmConfig, list_images, parse_camera
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 
@@ -55,9 +55,9 @@ def test_missing_folder(tmp_path):
 def test_one_image(tmp_path):
     _noise_png(tmp_path / "img" / "a.png", 0)
     (tmp_path / "img" / "b.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")   # unreadable: only 1 readable image
-    line = _one_error_line(run_cli("sfm", tmp_path / "img", tmp_path / "out"))
-    assert "at least 2 readable images" in line and "b.png" in line
-    assert not (tmp_path / "out").exists()
+    line = _one_error_line(run_cli("sfm", tmp_path / "img", tmp_path / "out", "--quiet"))
+    assert "at least 2 usable images" in line and "b.png" in line
+    assert not (tmp_path / "out" / "sparse").exists()
 
 
 def test_foreign_database_refused(tmp_path):
@@ -116,33 +116,6 @@ def test_parse_camera_and_listing(tmp_path):
     _noise_png(tmp_path / "a.png", 2)
     (tmp_path / "K.txt").write_text("1 0 0")
     assert list_images(tmp_path) == ["a.png", "x/b.PNG"]
-    (tmp_path / "c.jpg").write_bytes(b"\xff\xd8\xff garbage")
-    good, skipped = check_images(tmp_path)
-    assert good == ["a.png", "x/b.PNG"] and [s["name"] for s in skipped] == ["c.jpg"]
-
-
-def test_image_check_parses_headers_and_falls_back_to_opencv(tmp_path, monkeypatch):
-    """Headers are parsed, pixels are not decoded: a damaged header is unreadable, truncated pixel data is left to the
-    extractor; a format Pillow does not know goes to OpenCV's decoder (simulated)."""
-    from PIL import Image
-
-    from guidedmatch.sfm import _image_readable
-
-    _noise_png(tmp_path / "a.png", 0)
-    rng = np.random.default_rng(1)
-    cv2.imwrite(str(tmp_path / "b.jpg"), rng.integers(0, 255, (240, 320), np.uint8))
-    data = (tmp_path / "b.jpg").read_bytes()
-    (tmp_path / "trunc.jpg").write_bytes(data[: len(data) // 3])
-    (tmp_path / "zeros.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 64)
-    (tmp_path / "text.jpg").write_bytes(b"hello, not an image")
-    readable = {n: _image_readable(tmp_path / n) for n in ("a.png", "b.jpg", "trunc.jpg", "zeros.png", "text.jpg")}
-    assert readable == {"a.png": True, "b.jpg": True, "trunc.jpg": True, "zeros.png": False, "text.jpg": False}
-
-    def unknown(*a, **k):
-        raise Image.UnidentifiedImageError("unknown format")
-
-    monkeypatch.setattr(Image, "open", unknown)   # Pillow knows no format: OpenCV decides
-    assert _image_readable(tmp_path / "a.png") is True and _image_readable(tmp_path / "text.jpg") is False
 
 
 def test_plot_reconstruction(tmp_path):
@@ -216,14 +189,22 @@ def test_sfm_end_to_end_and_resume(rendered, tmp_path):
     worst = max(r["error_deg"] for r in ev.per_pair)
     assert ev.median_error_deg <= 0.5 and worst <= 2.0, ev.summary()
 
-    # rerun: nothing extracted or matched again, the model is rebuilt
+    # time and peak memory of every stage, in the report and the summary line
+    for st in rep["stages"].values():
+        assert st["time_s"] >= 0 and st["peak_rss_mb"]["self"] > 10
+    assert rep["peak_rss_mb"] >= max(st["peak_rss_mb"]["self"] for st in rep["stages"].values())
+    assert rep["mapper"] == "incremental" and "peak memory" in rep["summary"] and "5/5 images" in rep["summary"]
+    assert "peak memory" in (out / "report.md").read_text()
+
+    # rerun: nothing extracted or matched again, the model of the unchanged database reused
     proc = run_cli(*args)
     assert proc.returncode == 0, proc.stderr
     rep2 = json.loads((out / "report.json").read_text())
     assert rep2["stages"]["extraction"]["extracted"] == 0 and rep2["stages"]["extraction"]["reused"] == 5
     assert rep2["stages"]["matching"]["collection"]["done"] == 0
     assert rep2["stages"]["matching"]["collection"]["skipped"] == 10
-    assert rep2["registered"] == 5
+    assert rep2["registered"] == 5 and rep2["stages"]["mapping"]["reused"] is True
+    assert rep2["stages"]["mapping"]["models"] == rep["stages"]["mapping"]["models"]
 
     # other matching settings on the same project: refused before any work, the database untouched
     from guidedmatch.sfm import database_pair_stats
@@ -276,3 +257,128 @@ def test_mapper_profile_tool_reads_colmaps_log(rendered, tmp_path):
     assert all(r["residuals"] > 0 and r["iterations"] >= 1 and r["time_s"] >= 0 for r in rows)
     assert {r["termination"] for r in rows} <= {"CONVERGENCE", "NO_CONVERGENCE", "USER_SUCCESS"}
     assert any(r["stage"].startswith("Registering image #") for r in rows)
+
+
+# --------------------------------------------------------------------------- the staged pipeline, mappers, scenes
+def _truncated_copy(folder: Path, dest: Path) -> Path:
+    """``folder``'s views plus ``cut.jpg``: a JPEG cut to half its bytes (libjpeg decodes it partially, with only a
+    warning on stderr)."""
+    import shutil
+
+    shutil.copytree(folder, dest)
+    (dest / "zz_broken.png").unlink()
+    img = cv2.imread(str(folder / "view_00.png"), cv2.IMREAD_GRAYSCALE)
+    ok, buf = cv2.imencode(".jpg", img)
+    (dest / "cut.jpg").write_bytes(buf.tobytes()[: len(buf) // 2])
+    return dest
+
+
+def test_staged_pipeline_is_sfm_and_features_are_colmaps(rendered, tmp_path):
+    """extract -> colmap -> map with COLMAP's SIFT: the extracted features are byte for byte those of
+    pycolmap.extract_features on the same files, pycolmap's mapper reads them (every view registered, poses within
+    the stated tolerance), the truncated JPEG is skipped by name (or refused with exit 2), and guidedmatch sfm gives
+    the same database features and pairs."""
+    import pycolmap
+
+    from guidedmatch.evaluation.poses import CameraPose, evaluate_poses
+    from guidedmatch.sfm import database_pair_stats
+
+    scene, folder = rendered
+    images = _truncated_copy(folder, tmp_path / "images")
+    db = tmp_path / "staged" / "database.db"
+    refused = run_cli("extract", images, db, "--bad-images", "refuse", "--quiet")
+    line = _one_error_line(refused)
+    assert "cut.jpg" in line and "truncated or corrupt" in line
+    assert not db.exists() or not pycolmap.Database.open(str(db)).num_images()
+
+    proc = run_cli("extract", images, db, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "skipped    : cut.jpg:" in proc.stdout and "truncated or corrupt" in proc.stdout
+    assert "next       : guidedmatch colmap" in proc.stdout
+    again = run_cli("extract", images, db, "--quiet")          # resumable: nothing left to extract
+    assert again.returncode == 0 and "extracted  : 0 image(s), 5 already" in again.stdout, again.stdout
+
+    # the same features as COLMAP's own extractor reading the files itself
+    ref = tmp_path / "ref.db"
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.num_threads = 1
+    pycolmap.extract_features(str(ref), str(images), image_names=list(scene.names), extraction_options=opts,
+                              device=pycolmap.Device.cpu)
+    a, b = pycolmap.Database.open(str(db)), pycolmap.Database.open(str(ref))
+    try:
+        ours = {im.name: im.image_id for im in a.read_all_images()}
+        theirs = {im.name: im.image_id for im in b.read_all_images()}
+        assert sorted(ours) == sorted(theirs) == sorted(scene.names)
+        for n in scene.names:
+            np.testing.assert_array_equal(a.read_keypoints(ours[n]), b.read_keypoints(theirs[n]))
+            np.testing.assert_array_equal(a.read_descriptors(ours[n]).data, b.read_descriptors(theirs[n]).data)
+        assert [(c.model, c.width, c.height, list(c.params)) for c in a.read_all_cameras()] == \
+               [(c.model, c.width, c.height, list(c.params)) for c in b.read_all_cameras()]
+    finally:
+        a.close()
+        b.close()
+
+    proc = run_cli("colmap", db, "--max-inliers-per-pair", "1000", "--workers", "0", "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    assert "next       : guidedmatch map" in proc.stdout
+    proc = run_cli("map", db, images, tmp_path / "staged" / "sparse", "--threads", "2", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "5 images" in proc.stdout and "next       : colmap gui" in proc.stdout
+    rec = pycolmap.Reconstruction(str(tmp_path / "staged" / "sparse" / "0"))
+    gt = {n: CameraPose(R, t) for n, R, t in zip(scene.names, scene.R, scene.t)}
+    ev = evaluate_poses(rec, gt)
+    # stated tolerance (estimated intrinsics, COLMAP SIFT on 640x480 renders): median <= 1 deg, every pair <= 3 deg
+    assert ev.num_registered == 5 and ev.median_error_deg <= 1.0, ev.summary()
+    assert max(r["error_deg"] for r in ev.per_pair) <= 3.0, ev.summary()
+
+    # guidedmatch sfm = the same three stages: the same features and the same verified pairs
+    proc = run_cli("sfm", images, tmp_path / "sfm", "--workers", "0", "--threads", "2", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((tmp_path / "sfm" / "report.json").read_text())
+    assert [s["name"] for s in rep["skipped_images"]] == ["cut.jpg"]
+    assert "truncated or corrupt" in rep["skipped_images"][0]["reason"] and rep["registered"] == 5
+    assert "cut.jpg" in proc.stdout + proc.stderr
+    staged = {(r["name1"], r["name2"], r["verified"]) for r in database_pair_stats(db)}
+    assert {(r["name1"], r["name2"], r["verified"]) for r in database_pair_stats(tmp_path / "sfm" / "database.db")} \
+        == staged
+
+
+def test_sfm_global_mapper(rendered, tmp_path):
+    """``--mapper global`` (pycolmap.global_mapping): every view registered, poses within the stated tolerance, the
+    report names the mapper and its time."""
+    import pycolmap
+
+    from guidedmatch.evaluation.poses import CameraPose, evaluate_poses
+
+    scene, folder = rendered
+    out = tmp_path / "proj"
+    proc = run_cli("sfm", folder, out, "--detector", "ours:sift", "--camera", _known_camera(scene), "--threads", "2",
+                   "--workers", "0", "--mapper", "global", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["mapper"] == "global" and rep["stages"]["mapping"]["mapper"] == "global"
+    assert rep["stages"]["mapping"]["time_s"] > 0 and "global mapper" in rep["summary"]
+    ev = evaluate_poses(pycolmap.Reconstruction(str(out / "sparse" / "0")),
+                        {n: CameraPose(R, t) for n, R, t in zip(scene.names, scene.R, scene.t)})
+    # stated tolerance for the global mapper (known intrinsics): median <= 1 deg, every pair <= 3 deg
+    assert ev.num_registered == 5 and ev.median_error_deg <= 1.0, ev.summary()
+    assert max(r["error_deg"] for r in ev.per_pair) <= 3.0, ev.summary()
+
+
+def test_two_unrelated_scenes_give_two_models(tmp_path):
+    """Two rendered scenes in one folder: two models, each holding the views of one scene only; both reported."""
+    mv = pytest.importorskip("guidedmatch.testing.multiview")
+    for sub, seed in (("a", 3), ("b", 4)):
+        mv.write_views(mv.make_multiview(n_views=4, size=(640, 480), seed=seed, isolated=False, spacing=1.6),
+                       tmp_path / "images" / sub)
+    proc = run_cli("sfm", tmp_path / "images", tmp_path / "out", "--detector", "ours:sift", "--workers", "0",
+                   "--threads", "2", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert len(rep["models"]) == 2, rep["summary"]
+    folders = [{n.split("/")[0] for n in m["registered_names"]} for m in rep["models"]]
+    assert sorted(map(sorted, folders)) == [["a"], ["b"]]
+    assert [m["registered"] for m in rep["models"]] == [4, 4] and rep["unregistered"] == []
+    assert "2 models: 4 + 4 of 8 images" in rep["summary"]
+    assert (tmp_path / "out" / "sparse" / "1" / "images.bin").is_file()
+    assert "sparse/1" in (tmp_path / "out" / "report.md").read_text()

@@ -31,16 +31,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, DatabaseError, ImageReadError, InputError, OutputError
+from ..errors import DatabaseError, ImageReadError, InputError, OutputError
 from ..features import BINARY_KINDS, DETECTORS, Features
+from .image_folder import IMAGE_EXTENSIONS
 
 __all__ = ["FeatureSource", "ColmapSource", "H5Source", "open_source", "images_to_database", "IMAGE_EXTENSIONS",
            "COLMAP_PIXEL_OFFSET"]
 
 #: COLMAP pixel coordinate minus OpenCV pixel coordinate of the same point.
 COLMAP_PIXEL_OFFSET = 0.5
-#: file suffixes :func:`images_to_database` reads (case-insensitive).
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".jp2")
 _BINARY_BY_BYTES = {32: "orb", 61: "akaze", 64: "brisk"}
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -495,55 +494,27 @@ def open_source(path: str | os.PathLike) -> FeatureSource:
 
 
 # ====================================================================== image folder -> COLMAP database
-def _list_images(image_dir: Path) -> list[str]:
-    names = []
-    for root, dirs, files in os.walk(image_dir):
-        dirs.sort()
-        for f in sorted(files):
-            if f.lower().endswith(IMAGE_EXTENSIONS):
-                names.append(Path(root, f).relative_to(image_dir).as_posix())
-    return names
-
-
-def _colmap_keypoints(f: Features) -> np.ndarray:
-    """``(N, 4) float32``: COLMAP x, y (+0.5), scale (= OpenCV diameter / 2), orientation (radians)."""
-    n = len(f)
-    out = np.zeros((n, 4), np.float32)
-    out[:, :2] = f.keypoints + COLMAP_PIXEL_OFFSET
-    out[:, 2] = (f.scales / 2.0) if f.scales is not None else 1.0
-    out[:, 3] = np.deg2rad(f.angles) if f.angles is not None else 0.0
-    return out
-
-
-def _colmap_descriptors(f: Features):
-    import pycolmap
-
-    d = f.descriptors
-    if f.kind == "sift":
-        # OpenCV's float SIFT values are integers 0..255 (x512 normalized, clipped): uint8 is lossless
-        u = np.clip(np.rint(d), 0, 255).astype(np.uint8)
-        return pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, u)
-    if d.dtype != np.uint8:
-        raise InputError(f"cannot store float {f.kind} descriptors in a COLMAP database (SIFT or binary only)")
-    return pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.UNDEFINED, np.ascontiguousarray(d))
-
-
 def images_to_database(image_dir: str | os.PathLike, database_path: str | os.PathLike, *, detector: str = "sift",
                        max_features: int | None = None, max_image_size: int | None = None,
                        camera_model: str = "SIMPLE_RADIAL", single_camera: bool = False, progress: bool = True,
                        detector_options: dict | None = None, resume: bool = False,
-                       image_names=None) -> ColmapSource:
+                       image_names=None, bad_images: str = "refuse", workers: int = 1) -> ColmapSource:
     """Detect the images of a folder with our detectors and store them in a new COLMAP database.
 
-    Images (``IMAGE_EXTENSIONS``, searched recursively, names relative to ``image_dir`` with ``/``) are
-    detected with :func:`guidedmatch.features.detect`; with ``max_image_size`` the image is first downscaled so
-    its longer side is at most that (cv2.INTER_AREA) and keypoints are mapped back to original pixels; an image
-    whose estimated detection peak exceeds the available memory is refused (MemoryLimitError naming a size). Each
-    image gets, like ``colmap feature_extractor``: a camera (``camera_model``, focal prior ``1.2 max(w, h)`` as
-    COLMAP assumes without EXIF, principal point at the centre; one shared camera with ``single_camera``), a
-    trivial rig and frame, 4-column keypoints in COLMAP's convention (x + 0.5, y + 0.5, scale, orientation) and
-    descriptors (SIFT as uint8 of type SIFT -- OpenCV's SIFT bytes, lossless; binary ORB/AKAZE/BRISK as uint8 of
-    type UNDEFINED).
+    Images (``IMAGE_EXTENSIONS``, searched recursively, names relative to ``image_dir`` with ``/``) are decoded
+    completely (a truncated or corrupt file is never used) and detected with :func:`guidedmatch.features.detect`
+    (:func:`guidedmatch.collection.image_folder.extract_folder`); with ``max_image_size`` the image is first
+    downscaled so its longer side is at most that (cv2.INTER_AREA) and keypoints are mapped back to original pixels;
+    an image whose estimated detection peak exceeds the available memory is refused (MemoryLimitError naming a
+    size). Each image gets, like ``colmap feature_extractor``: a camera (``camera_model``, the EXIF focal length or
+    ``1.2 max(w, h)``, principal point at the centre; one shared camera with ``single_camera``), a rig and frame,
+    4-column keypoints in COLMAP's convention (x + 0.5, y + 0.5, scale, orientation) and descriptors (SIFT as uint8
+    of type SIFT -- OpenCV's SIFT bytes, lossless; binary ORB/AKAZE/BRISK as uint8 of type UNDEFINED).
+
+    ``bad_images="refuse"`` (default): every image is decoded before anything is written and a damaged one raises
+    ImageReadError naming it (a blank image, without features, raises InputError when reached); ``"skip"``: such
+    images are left out and listed in the returned source's ``skipped_images`` (``[{"name", "reason"}]``).
+    ``workers`` > 1 decodes and detects in that many processes.
 
     Each image is written in one transaction, so an interrupted run leaves a valid database holding the images
     done so far; ``resume=True`` accepts an existing database and detects only the images it lacks.
@@ -552,24 +523,22 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
     Raises:
         OutputError: ``database_path`` exists (without ``resume``) or cannot be written.
         InputError / ImageReadError: no images in the folder / an unreadable image (named).
-        ConfigError: unknown detector or camera model.
+        ConfigError: unknown detector, detector option or camera model.
     """
-    import pycolmap
-
-    from ..features import detect, load_image
+    from ..features import check_detector_options
     from ..validation import check_bool, check_choice, check_number
+    from .image_folder import ExtractorSpec, check_camera_model, extract_folder
+    from .image_folder import list_images as _list_images
 
     check_choice("images_to_database", "detector", detector, DETECTORS)
     check_number("images_to_database", "max_features", max_features, lo=1, integer=True, allow_none=True)
     check_number("images_to_database", "max_image_size", max_image_size, lo=16, integer=True, allow_none=True)
+    check_number("images_to_database", "workers", workers, lo=1, integer=True)
+    check_choice("images_to_database", "bad_images", bad_images, ("skip", "refuse"))
     for n, v in (("single_camera", single_camera), ("progress", progress), ("resume", resume)):
         check_bool("images_to_database", n, v)
-    try:
-        pycolmap.Camera.create_from_model_name(1, camera_model, 100.0, 100, 100)
-    except Exception:
-        raise ConfigError(f"images_to_database.camera_model: unknown COLMAP camera model {camera_model!r} "
-                          "(e.g. SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV)") from None
-    options = dict(detector_options or {})
+    options = check_detector_options(detector, dict(detector_options or {}))
+    check_camera_model(camera_model)
     image_dir, database_path = Path(image_dir), Path(database_path)
     if not image_dir.is_dir():
         raise InputError(f"image folder not found: {image_dir}")
@@ -596,63 +565,20 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
         raise OutputError(f"cannot write the COLMAP database {database_path} (read-only)")
     # cheap signature check of every file before any work
     unreadable = [n for n in names if not _have_reader(image_dir / n)]
-    if unreadable:
+    if unreadable and bad_images == "refuse":
         raise ImageReadError(f"{len(unreadable)} file(s) in {image_dir} are not readable images: "
                              f"{_examples(unreadable)}")
-    from tqdm.auto import tqdm
-
-    db = pycolmap.Database.open(str(database_path))
-    try:
-        existing = {im.name: im for im in db.read_all_images()}
-        shared = shared_rig = None
-        if single_camera and db.num_cameras() > 0:
-            shared = db.read_all_cameras()[0]
-            shared_rig = next((r.rig_id for r in db.read_all_rigs() if r.has_sensor(shared.sensor_id)), None)
-        for name in tqdm(names, desc="detect", unit="img", disable=not progress):
-            im = existing.get(name)
-            if im is not None and db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id):
-                continue
-            try:
-                img = load_image(image_dir / name, grey=True)
-            except (ValueError, FileNotFoundError) as exc:
-                raise ImageReadError(f"{image_dir / name}: {exc}") from None
-            h, w = img.shape[:2]
-            f = detect(img, detector, max_features, max_image_size=max_image_size, **options)  # + memory guard
-            kp, desc = _colmap_keypoints(f), _colmap_descriptors(f)
-            if shared is not None and (shared.width, shared.height) != (w, h):
-                raise InputError(f"single_camera: {name} is {w}x{h} but the shared camera is "
-                                 f"{shared.width}x{shared.height}")
-            with pycolmap.DatabaseTransaction(db):  # one image: camera, rig, image, frame, keypoints, descriptors
-                if im is None:
-                    if shared is not None:
-                        cam, rig_id = shared, shared_rig
-                    else:
-                        cam = pycolmap.Camera.create_from_model_name(0, camera_model, 1.2 * max(w, h), w, h)
-                        cam.camera_id = db.write_camera(cam)
-                        rig = pycolmap.Rig()
-                        rig.add_ref_sensor(cam.sensor_id)
-                        rig_id = db.write_rig(rig)
-                        if single_camera:
-                            shared, shared_rig = cam, rig_id
-                    iid = db.write_image(pycolmap.Image(name=name, camera_id=cam.camera_id))
-                    frame = pycolmap.Frame()
-                    frame.rig_id = rig_id
-                    frame.add_data_id(db.read_image(iid).data_id)
-                    db.write_frame(frame)
-                else:
-                    iid = im.image_id
-                if db.exists_keypoints(iid):
-                    db.update_keypoints(iid, kp)
-                else:
-                    db.write_keypoints(iid, kp)
-                if not db.exists_descriptors(iid):
-                    db.write_descriptors(iid, desc)
-                elif db.num_descriptors_for_image(iid) != len(f):
-                    raise DatabaseError(f"{database_path}: image {name!r} has stored descriptors that do not match "
-                                        "its detection; remove the image from the database and rerun")
-    finally:
-        db.close()
-    return ColmapSource(database_path)
+    skipped = [{"name": n, "reason": f"not a readable image: {image_dir / n}"} for n in unreadable]
+    names = [n for n in names if n not in set(unreadable)]
+    spec = ExtractorSpec(detector="ours:" + detector, max_features=max_features, max_image_size=max_image_size,
+                         detector_options=tuple(sorted(options.items())))
+    if names:
+        out = extract_folder(image_dir, database_path, names, spec, camera_model=camera_model,
+                             single_camera=single_camera, workers=workers, bad_images=bad_images, progress=progress)
+        skipped += out["skipped"]
+    src = ColmapSource(database_path)
+    src.skipped_images = skipped
+    return src
 
 
 def _have_reader(path: Path) -> bool:

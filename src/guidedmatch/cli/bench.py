@@ -1,0 +1,94 @@
+"""``guidedmatch bench`` (benchmark harness) and ``guidedmatch experiment`` (the paper's experiments)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import ConfigError, InputError
+from ..features import writable_folder
+from .common import positive_int
+
+__all__ = ["add_commands", "cmd_bench", "cmd_experiment"]
+
+
+def cmd_experiment(args) -> int:
+    if args.which == "alignment":
+        from ..evaluation.alignment_sim import run_alignment_experiment
+
+        summary = run_alignment_experiment(n_pairs=args.pairs, out_dir=writable_folder(args.out), seed=args.seed,
+                                           progress=True)
+        if isinstance(summary, dict) and summary.get("table_md"):
+            print(summary["table_md"])
+        print(f"wrote results to {args.out}")
+        return 0
+    raise ConfigError(f"unknown experiment {args.which!r}")
+
+
+def cmd_bench(args) -> int:
+    writable_folder(args.out)
+    if args.which == "sfm":
+        from ..evaluation import bench_sfm
+
+        return int(bench_sfm.main(args) or 0)
+    if args.which == "pairs":
+        from ..evaluation import bench_pairs
+
+        return int(bench_pairs.main(args) or 0)
+    from ..evaluation.bench import run_benchmarks
+
+    if args.which == "collection":  # guidedmatch colmap vs pycolmap.match_exhaustive on Herz-Jesus-P8
+        from ..datasets import data_root
+        from ..evaluation.bench_collection import DATA_REL, main as bench_collection
+
+        root = data_root(args.data)
+        if root is None or not (root / DATA_REL).is_dir():
+            raise InputError(f"no Herz-Jesus-P8 images under {root}/{DATA_REL}: pass --data DIR or set GUIDEDMATCH_DATA")
+        return bench_collection(["--data", str(root), "--out", str(Path(args.out) / "collection")]
+                                + (["--repeats", str(args.repeats)] if args.repeats else []))
+    run_benchmarks(args.which, data=args.data, out=args.out, quick=args.quick, repeats=args.repeats,
+                   detector=args.detector, seed=args.seed)
+    return 0
+
+
+
+
+def add_commands(sub, parents) -> None:
+    """Add ``experiment`` and ``bench`` to the CLI's subparsers."""
+    from ..evaluation.bench import BENCHMARKS
+    from ..features import DETECTORS
+
+    e = sub.add_parser("experiment", parents=parents, help="run a paper experiment", description="Run one of the paper's experiments.")
+    e.add_argument("which", choices=("alignment",), help="alignment: K-hat ratio vs viewing angle for the four alignment approaches")
+    e.add_argument("--pairs", type=positive_int, default=3000, help="number of simulated view pairs (default 3000)")
+    e.add_argument("--out", default="out/alignment", help="output folder")
+    e.add_argument("--seed", type=int, default=0)
+    e.set_defaults(func=cmd_experiment)
+
+    b = sub.add_parser("bench", parents=parents, help="reproduce the paper's tables side by side with the paper and peers",
+                       description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
+    b.add_argument("which", choices=(*BENCHMARKS, "collection", "pairs", "sfm"),
+                   help="pairs: every pair of Herz-Jesus-P8 + unrelated pairs vs COLMAP-style IVF, faiss, FLANN; "
+                   "sfm: COLMAP's matcher vs guidedmatch inside COLMAP's mapper, GT poses (Herz-Jesus-P8)")
+    b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
+    b.add_argument("--out", default="reports", help="output folder (default ./reports)")
+    b.add_argument("--quick", action="store_true", help="a few pairs per set (minutes, not an hour)")
+    b.add_argument("--repeats", type=positive_int, default=None,
+                   help="timing repeats per method (median); sfm: runs of each end-to-end pipeline (median, "
+                        "alternating order); collection: runs of COLMAP vs ours and of 1 vs 2 workers (alternating)")
+    b.add_argument("--detector", default="sift", choices=DETECTORS)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--scene", default=None, help="sfm: scene folder with images/ and gt_dense_cameras/ (Strecha "
+                   "layout; default: Herz-Jesus-P8 in the data folder)")
+    b.add_argument("--methods", default=None, help="sfm: comma-separated subset of colmap, colmap_guided, "
+                   "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap, colmap+cap, so+epi+ia+ours+cap (+cap: at "
+                   "most 1000 inliers per pair to the mapper, as guidedmatch sfm does)")
+    b.add_argument("--threads", type=positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
+    b.add_argument("--work", default=None, help="sfm: folder for the databases and models (default OUT/work; "
+                   "extracted features are reused by a rerun)")
+    b.add_argument("--merge", action="store_true", help="sfm: keep the rows of an existing OUT/sfm.json that this run "
+                   "does not redo (e.g. after --methods X)")
+    b.add_argument("--no-e2e", action="store_true", help="sfm: skip the end-to-end comparison (guidedmatch sfm vs "
+                   "the pycolmap pipeline with COLMAP's matcher)")
+    from ..evaluation.bench_pairs import add_arguments as _pairs_arguments
+
+    _pairs_arguments(b)  # --features / --dense / --oxford of `bench pairs`
+    b.set_defaults(func=cmd_bench)

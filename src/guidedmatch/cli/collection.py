@@ -1,0 +1,190 @@
+"""``guidedmatch colmap`` (a COLMAP database) and ``guidedmatch hloc`` (hloc features.h5 -> matches.h5): collection
+matching with the collection engine."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..config import MODES
+from ..errors import ConfigError, GuidedMatchError
+from ..features import writable_folder
+from .common import nonneg_int, parse_kv, positive_int
+
+__all__ = ["add_commands", "cmd_colmap", "cmd_hloc", "add_matching_options"]
+
+
+COLMAP_EXAMPLES = """examples:
+  guidedmatch colmap project/database.db                       # every pair (exhaustive), our two-view geometry
+  guidedmatch colmap db.db --pairs sequential:10               # video: each image with the next 10
+  guidedmatch colmap db.db --pairs pairs.txt --workers 2       # a COLMAP / hloc pairs file, 2 local processes
+  guidedmatch colmap db.db --scheduler tcp://10.0.0.1:8786     # a running Dask cluster (shared storage)
+  guidedmatch colmap db.db --geometry colmap                   # raw matches, then COLMAP's own verification
+  guidedmatch colmap db.db --workers 2 --timeline run.png      # and a figure of when each pair ran, per worker
+  guidedmatch colmap db.db --max-inliers-per-pair 1000         # at most 1000 spread, best-first inliers per pair
+                                                               # for the mapper: faster mapping (docs/collections.md)
+  guidedmatch colmap db.db --config max_unguided=0.005         # many unrelated 50k+-feature images: rejects them
+                                                               # ~3x sooner, loses pairs verified late (docs/collections.md)
+  guidedmatch map db.db images/ sparse/                        # then map with pycolmap (pip only), or with
+  colmap mapper --database_path db.db --image_path images --output_path sparse   # the COLMAP program
+
+Interrupted? Run the same command again: pairs already in the database are skipped.
+"""
+
+HLOC_EXAMPLES = """examples:
+  guidedmatch hloc outputs/feats-sift.h5 outputs/pairs-netvlad.txt outputs/matches-guided.h5
+  guidedmatch hloc feats.h5 exhaustive matches.h5 --workers 2 --config band_px=3
+
+Then use MATCHES.h5 wherever hloc expects a matches file (e.g. hloc.reconstruction.main(..., matches=...)).
+Interrupted? Run the same command again: pairs already in MATCHES.h5 (or its .parts folder) are skipped.
+"""
+
+
+
+def add_matching_options(p: argparse.ArgumentParser, modes) -> None:
+    p.add_argument("--mode", default="so+epi+ia", choices=modes, help="matching mode (default so+epi+ia)")
+    p.add_argument("--config", action="append", metavar="KEY=VALUE",
+                   help="matcher config override, e.g. band_px=3 (repeatable)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=nonneg_int, default=None, metavar="N",
+                       help="N local single-threaded worker processes (0: in this process; default: auto -- "
+                            "in-process for small jobs, else one per core)")
+    where.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="address of a running Dask scheduler (tcp://host:8786); workers need the files")
+    p.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                   help="in-process runs: pairs matched at once on N threads (default: one per core)")
+    p.add_argument("--retries", type=nonneg_int, default=1, help="retries of a failed pair (default 1)")
+    p.add_argument("--cache-mb", type=positive_int, default=1024, metavar="MB",
+                   help="per process (each worker, or this one in-process): loaded images kept, MB (default 1024: "
+                        "~100 images of 8192 SIFT features, ~12 of 70k); a collection that does not fit is matched "
+                        "in sweeps that load each image more than once")
+    p.add_argument("--log", default=None, metavar="PATH",
+                   help="per-pair JSON lines + a summary line (default: next to the output, .guidedmatch.jsonl; "
+                        "'none' for no log)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--timeline", default=None, metavar="PNG",
+                   help="also draw when each pair of this run ran, on which worker or thread (a PNG figure)")
+
+
+def add_commands(sub, parents) -> None:
+    """Add ``colmap`` and ``hloc`` to the CLI's subparsers."""
+    c = sub.add_parser("colmap", parents=parents, help="match the images of a COLMAP database (writes matches + two-view geometries)",
+                       description="Match image pairs of a COLMAP database (features from colmap feature_extractor, "
+                       "pycolmap.extract_features or guidedmatch) and write their matches and two-view geometries "
+                       "into it, ready for colmap mapper / pycolmap.incremental_mapping. Resumable.",
+                       epilog=COLMAP_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    c.add_argument("database", help="COLMAP database (.db) with images, keypoints and descriptors")
+    c.add_argument("--pairs", default="exhaustive", metavar="SPEC",
+                   help="exhaustive | sequential[:K[:quadratic]] | PAIRS.txt ('name1 name2' lines); default exhaustive")
+    c.add_argument("--geometry", default="ours", choices=("ours", "colmap"),
+                   help="ours: our two-view verdict per pair (no separate verification); colmap: raw matches, then "
+                        "pycolmap's geometric verification (default ours)")
+    c.add_argument("--max-inliers-per-pair", type=int, default=0, metavar="K",
+                   help="then keep at most K inliers per pair for the mapper, spread over the image, best first "
+                        "(default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; "
+                        "below 100 COLMAP's mapper cannot pick an initial pair)")
+    add_matching_options(c, MODES)
+    c.set_defaults(func=cmd_colmap)
+
+    h = sub.add_parser("hloc", parents=parents, help="match the pairs of an hloc features.h5 into an hloc matches.h5",
+                       description="Match the image pairs of a pairs file with the features of an hloc features.h5 "
+                       "and write an hloc matches.h5 (matches0 / matching_scores0). Resumable.",
+                       epilog=HLOC_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    h.add_argument("features", help="hloc features.h5 (keypoints, descriptors D x N)")
+    h.add_argument("pairs", help="pairs file ('name1 name2' lines), or exhaustive | sequential[:K]")
+    h.add_argument("matches", help="output matches.h5 (created, or completed when it exists)")
+    add_matching_options(h, MODES)
+    h.set_defaults(func=cmd_hloc)
+
+
+def _collection_config(args, log_default: Path):
+    """The validated CollectionConfig of the options (ConfigError before any work)."""
+    from ..collection.engine import CollectionConfig
+
+    log = args.log if args.log is not None else str(log_default)
+    if args.threads is not None and (args.workers or args.scheduler):
+        raise ConfigError("--threads is for in-process runs; with --workers N / --scheduler each worker runs one pair "
+                          "at a time")
+    from ..collection.engine import collection_matcher_config
+
+    try:
+        matcher = collection_matcher_config(parse_kv(args.config, "--config"))
+    except ConfigError as exc:
+        raise ConfigError(f"bad --config: {exc}") from None
+    return CollectionConfig(mode=args.mode, matcher=matcher, workers=args.workers,
+                            threads=args.threads, scheduler=args.scheduler, retries=args.retries, progress=not args.no_progress,
+                            cache_mb=float(args.cache_mb), log_path=None if str(log).lower() == "none" else log)
+
+
+def _print_pairs(pairs) -> None:
+    """Say what the pair list normalization dropped (duplicates, reversed duplicates, self-pairs), if anything."""
+    if any(isinstance(v, dict) and v.get("count") for v in pairs.report.values()):
+        print(f"pairs      : {pairs.summary()}")
+
+
+def _finish(report, log_path, timeline: str | None = None) -> int:
+    print(report.summary())
+    if log_path:
+        print(f"log        : {log_path}")
+    if timeline:
+        from ..plots import collection_timeline
+
+        drawn = collection_timeline(timeline, report.per_pair, title=report.totals.get("backend", ""))
+        print(f"timeline   : {drawn if drawn else 'no pair was matched in this run: no figure'}")
+    if report.failed:
+        (a, b), reason = report.failed[0]
+        n = report.done + len(report.failed)
+        raise GuidedMatchError(f"{len(report.failed)} of {n} pairs failed and were not written (first: {a} {b}: "
+                               f"{reason}); run the same command again to retry them"
+                               + (f"; details in {log_path}" if log_path else ""))
+    return 0
+
+
+def _setup(args, output: Path, open_source, spec: str):
+    """Everything checked before matching: options -> config, the source, the pair list, descriptor types."""
+    from ..collection.pairs import pairs_from_spec
+
+    cfg = _collection_config(args, output.with_name(output.name + ".guidedmatch.jsonl"))
+    if args.timeline is not None:
+        if Path(args.timeline).suffix.lower() != ".png":
+            raise ConfigError(f"--timeline writes a PNG figure; give a .png path, got {args.timeline}")
+        writable_folder(Path(args.timeline).parent, "--timeline")
+    source = open_source()
+    pairs = pairs_from_spec(spec, source.names())
+    _print_pairs(pairs)
+    source.validate(pairs.names())
+    return cfg, source, pairs
+
+
+def cmd_colmap(args) -> int:
+    from ..collection.sources import ColmapSource
+    from ..sfm.stages import match_into_database
+
+    db = Path(args.database)
+    if args.max_inliers_per_pair < 0:
+        raise ConfigError(f"--max-inliers-per-pair must be >= 0 (0 = all inliers); got {args.max_inliers_per_pair}")
+    cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
+    done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
+                               max_inliers_per_pair=args.max_inliers_per_pair)
+    if done["verified"] is not None:
+        print(f"verified   : {done['verified']} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
+    if (cap := done["inlier_cap"]) is not None:
+        print(f"mapper     : {cap['inliers_after']:,} of {cap['inliers_before']:,} inliers kept (at most "
+              f"{cap['max_inliers']} per pair, spread; {cap['pairs_capped']} pairs capped, {cap['time_s']:.2f} s)")
+    status = _finish(done["report"], cfg.log_path, args.timeline)
+    print(f"next       : guidedmatch map {db} IMAGE_DIR OUT_DIR   (pycolmap's mapper; or colmap mapper "
+          f"--database_path {db} --image_path IMAGE_DIR --output_path OUT_DIR)")
+    return status
+
+
+def cmd_hloc(args) -> int:
+    from ..collection.engine import match_collection
+    from ..collection.sinks import H5MatchesSink
+    from ..collection.sources import H5Source
+
+    out = Path(args.matches)
+    cfg, source, pairs = _setup(args, out, lambda: H5Source(args.features), args.pairs)
+    with H5MatchesSink(out, source) as sink:
+        report = match_collection(source, pairs, sink, cfg)
+    return _finish(report, cfg.log_path, args.timeline)
+
+

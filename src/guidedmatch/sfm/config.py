@@ -1,0 +1,159 @@
+"""Settings and paths of the structure-from-motion stages (:class:`SfmConfig`, :class:`SfmPaths`)."""
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..collection.image_folder import COLMAP_MAX_IMAGE_SIZE, IMAGE_EXTENSIONS, OUR_DETECTORS
+from ..config import MODES
+from ..errors import ConfigError
+from ..validation import check_bool, check_choice, check_number, config_from
+
+__all__ = ["SfmConfig", "SfmPaths", "parse_camera", "IMAGE_EXTENSIONS", "COLMAP_MAX_IMAGE_SIZE", "OUR_DETECTORS",
+           "CAMERA_MODELS", "MAPPERS", "MIN_MAPPER_INLIERS", "VERIFIED_CONFIGS"]
+
+#: Camera models accepted by ``camera=`` and their parameter counts (COLMAP's names and parameter order).
+CAMERA_MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
+#: COLMAP's ``IncrementalMapperOptions.init_min_num_inliers``: fewer inliers per pair and the mapper cannot start.
+MIN_MAPPER_INLIERS = 100
+#: Two-view geometry configurations the mapper uses (COLMAP ``TwoViewGeometry::ConfigurationType``).
+VERIFIED_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC", "MULTIPLE")
+#: Mappers: ``pycolmap.incremental_mapping`` and ``pycolmap.global_mapping`` (COLMAP's global SfM).
+MAPPERS = ("incremental", "global")
+def parse_camera(spec: str | None) -> tuple[str, list[float]] | None:
+    """``"PINHOLE:fx,fy,cx,cy"`` -> ``("PINHOLE", [fx, fy, cx, cy])`` (COLMAP model name and parameter order).
+
+    >>> parse_camera("PINHOLE:1000,1000,320,240")
+    ('PINHOLE', [1000.0, 1000.0, 320.0, 240.0])
+    >>> parse_camera(None) is None
+    True
+    """
+    if spec is None:
+        return None
+    model, sep, rest = str(spec).partition(":")
+    model = model.strip().upper()
+    if not sep or model not in CAMERA_MODELS:
+        raise ConfigError(f"camera must look like MODEL:p1,p2,... with MODEL one of {', '.join(CAMERA_MODELS)} "
+                          f"(e.g. PINHOLE:fx,fy,cx,cy); got {spec!r}")
+    try:
+        params = [float(v) for v in rest.split(",")]
+    except ValueError:
+        raise ConfigError(f"camera parameters must be numbers, got {rest!r}") from None
+    if len(params) != CAMERA_MODELS[model] or not all(math.isfinite(v) for v in params):
+        raise ConfigError(f"camera model {model} takes {CAMERA_MODELS[model]} finite parameters, got {rest!r}")
+    if params[0] <= 0 or (model in ("PINHOLE", "RADIAL", "OPENCV") and model != "RADIAL" and params[1] <= 0):
+        raise ConfigError(f"camera focal length must be > 0, got {rest!r}")
+    return model, params
+
+
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """Settings of the stages / ``guidedmatch extract | map | sfm`` (every field checked on construction)."""
+
+    detector: str = "colmap"           # "colmap" = pycolmap SIFT (colmap feature_extractor), or "ours:sift|orb|akaze|brisk"
+    max_features: int | None = None    # features per image; None = the detector's default (8192 for COLMAP SIFT)
+    max_image_size: int | None = None  # longest side before extraction; None = the detector's default (3200 for COLMAP)
+    peak_threshold: float | None = None  # COLMAP SIFT peak threshold; None = COLMAP's 0.0067 (0.002: ~5x more features)
+    camera_model: str = "SIMPLE_RADIAL"  # camera model when intrinsics are estimated (COLMAP's default)
+    camera: str | None = None          # known intrinsics "MODEL:params" for every image (held fixed in bundle adjustment)
+    single_camera: bool = False        # all images share one camera (intrinsics estimated jointly)
+    bad_images: str = "skip"           # a damaged image: "skip" (left out, listed in the report) | "refuse" (error)
+    pairs: str = "exhaustive"          # "exhaustive" | "sequential" | "sequential:K" | path of a "name1 name2" file
+    mode: str = "so+epi+ia"            # matcher mode (guidedmatch.matcher.match)
+    matcher: dict | None = None        # MatcherConfig overrides, e.g. {"alignment": "c_inplane"}
+    geometry: str = "ours"             # two-view geometry: "ours" (matcher's verdict written) | "colmap" (pycolmap verifies)
+    max_inliers_per_pair: int = 1000   # inliers per pair handed to the mapper (spread over the image, best first); 0 = all
+    workers: int | None = None         # matching worker processes; None = automatic, 0 = in this process (collection engine)
+    scheduler: str | None = None       # address of a running Dask scheduler for matching
+    mapper: str = "incremental"        # "incremental" (pycolmap.incremental_mapping) | "global" (pycolmap.global_mapping)
+    num_threads: int = -1              # extraction processes and COLMAP verification / mapping threads; -1 = all cores
+    seed: int = 0                      # mapper random seed (COLMAP's RANSAC and initial pair trials)
+    progress: bool = True              # print stage lines and progress bars
+
+    def __post_init__(self) -> None:
+        o = "SfmConfig"
+        det = self.detector
+        if det != "colmap" and not (det.startswith("ours:") and det[5:] in OUR_DETECTORS):
+            raise ConfigError(f"{o}.detector must be 'colmap' or one of "
+                              f"{', '.join('ours:' + d for d in OUR_DETECTORS)}; got {det!r}")
+        check_number(o, "max_features", self.max_features, lo=1, integer=True, allow_none=True)
+        check_number(o, "max_image_size", self.max_image_size, lo=16, integer=True, allow_none=True)
+        check_number(o, "peak_threshold", self.peak_threshold, lo=0, lo_open=True, allow_none=True)
+        if self.peak_threshold is not None and det != "colmap":
+            raise ConfigError(f"{o}.peak_threshold applies to the COLMAP SIFT detector only (detector={det!r})")
+        check_choice(o, "camera_model", self.camera_model, CAMERA_MODELS)
+        parse_camera(self.camera)
+        check_bool(o, "single_camera", self.single_camera)
+        check_choice(o, "bad_images", self.bad_images, ("skip", "refuse"))
+        if not isinstance(self.pairs, str) or not self.pairs:
+            raise ConfigError(f"{o}.pairs must be 'exhaustive', 'sequential[:K]' or a pairs file; got {self.pairs!r}")
+        check_choice(o, "mode", self.mode, MODES)
+        if self.matcher is not None and not isinstance(self.matcher, dict):
+            raise ConfigError(f"{o}.matcher must be a dict of MatcherConfig fields or None; got {self.matcher!r}")
+        if self.matcher:
+            from ..config import MatcherConfig
+
+            config_from(MatcherConfig, self.matcher)
+        check_choice(o, "geometry", self.geometry, ("ours", "colmap"))
+        check_number(o, "max_inliers_per_pair", self.max_inliers_per_pair, lo=0, integer=True)
+        if 0 < self.max_inliers_per_pair < MIN_MAPPER_INLIERS:
+            raise ConfigError(f"{o}.max_inliers_per_pair must be 0 (all) or >= {MIN_MAPPER_INLIERS}: COLMAP's mapper "
+                              f"needs {MIN_MAPPER_INLIERS} inliers in its initial pair (init_min_num_inliers); got "
+                              f"{self.max_inliers_per_pair}")
+        check_number(o, "workers", self.workers, lo=0, integer=True, allow_none=True)
+        check_choice(o, "mapper", self.mapper, MAPPERS)
+        check_number(o, "num_threads", self.num_threads, lo=-1, integer=True)
+        if self.num_threads == 0:
+            raise ConfigError(f"{o}.num_threads must be -1 (all cores) or >= 1; got 0")
+        check_number(o, "seed", self.seed, lo=0, integer=True)
+        check_bool(o, "progress", self.progress)
+
+    def extraction_settings(self) -> dict:
+        """What determines the database's features (a rerun with other values is refused)."""
+        return {k: getattr(self, k) for k in ("detector", "max_features", "max_image_size", "peak_threshold",
+                                               "camera_model", "camera", "single_camera")}
+
+    def matching_settings(self) -> dict:
+        """What determines the matched pairs (a rerun with other values is refused while pairs exist)."""
+        return {"mode": self.mode, "matcher": dict(self.matcher or {}), "geometry": self.geometry,
+                "max_inliers_per_pair": self.max_inliers_per_pair}
+
+    def mapping_settings(self) -> dict:
+        """What determines the model given the database (a rerun with the same values and database reuses it)."""
+        return {"mapper": self.mapper, "seed": self.seed, "camera": self.camera}
+
+
+@dataclass(frozen=True)
+class SfmPaths:
+    """Where the stages read and write. ``guidedmatch sfm``: everything under ``out_dir`` (``database.db``,
+    ``sparse/``, reports); the staged commands name the database (``database``) and the model folder (``sparse``)
+    themselves."""
+
+    image_dir: Path
+    out_dir: Path
+    database_path: Path | None = None   # default out_dir/database.db
+    sparse_path: Path | None = None     # default out_dir/sparse
+
+    def __post_init__(self) -> None:
+        for k in ("image_dir", "out_dir", "database_path", "sparse_path"):
+            if getattr(self, k) is not None:
+                object.__setattr__(self, k, Path(getattr(self, k)).expanduser().resolve())
+
+    database = property(lambda self: self.database_path or self.out_dir / "database.db")
+    sparse = property(lambda self: self.sparse_path or self.out_dir / "sparse")
+    project = property(lambda self: self.out_dir / "sfm_project.json")
+    report_json = property(lambda self: self.out_dir / "report.json")
+    report_md = property(lambda self: self.out_dir / "report.md")
+    figure = property(lambda self: self.out_dir / "reconstruction.png")
+    pair_log = property(lambda self: self.out_dir / "pairs.jsonl")
+    mapping_record = property(lambda self: self.sparse / "mapping.json")
+
+
+def say(conf: SfmConfig, text: str) -> None:
+    """A progress line on stderr (unless ``conf.progress`` is off)."""
+    if conf.progress:
+        print(text, file=sys.stderr, flush=True)

@@ -1,0 +1,459 @@
+"""The three resumable stages of structure from motion, each a ``main(conf, paths)`` in the style of hloc:
+
+1. :func:`extract_main` -- every image decoded once and completely, its features written into a COLMAP database
+   (:func:`guidedmatch.collection.image_folder.extract_folder`; damaged images skipped and listed, or refused);
+   images already there are not read again.
+2. :func:`match_main` -- the collection engine over the pair list into the database (pairs already there are
+   skipped), then at most ``max_inliers_per_pair`` inliers of each pair kept for the mapper.
+3. :func:`map_main` -- ``pycolmap.incremental_mapping`` or ``pycolmap.global_mapping`` into ``sparse/<k>``
+   (written to a temporary folder and moved into place when complete); a rerun on an unchanged database with the
+   same mapper settings reuses the model.
+
+Each stage's record carries its time and the peak resident memory of this process during the stage
+(``VmHWM`` of ``/proc/self/status``, reset at the stage's start where Linux allows it) and of its child processes.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import DatabaseError, OutputError
+from .config import COLMAP_MAX_IMAGE_SIZE, VERIFIED_CONFIGS, SfmConfig, SfmPaths, parse_camera, say
+
+__all__ = ["check_output", "extract_main", "match_main", "match_into_database", "map_main", "run_mapping", "reconstruction_stats",
+           "database_pair_stats", "verified_inliers", "extract_colmap_sift", "database_summary", "peak_memory", "make_folder"]
+
+
+# --------------------------------------------------------------------------- memory
+def _vm_hwm_mb() -> float | None:
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+@contextlib.contextmanager
+def peak_memory(record: dict):
+    """Store in ``record["peak_rss_mb"]`` the peak resident memory (MB) of this process during the block
+    (``self``; ``self_reset`` False: since the process started, where ``/proc/self/clear_refs`` cannot reset it) and
+    of the child processes (``getrusage(RUSAGE_CHILDREN)``, the largest peak of any child that ended so far:
+    ``children_so_far``; ``children``: that figure when a child of this block raised it, else None)."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    reset = False
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        reset = True
+    except OSError:
+        pass
+    try:
+        yield
+    finally:
+        own = _vm_hwm_mb()
+        if own is None:
+            own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        record["peak_rss_mb"] = {"self": round(own, 1), "self_reset": reset,
+                                 "children": round(kids / 1024.0, 1) if kids > before else None,
+                                 "children_so_far": round(kids / 1024.0, 1)}
+
+
+# --------------------------------------------------------------------------- project records and output checks
+def make_folder(folder: Path, what: str) -> Path:
+    """Create ``folder`` (and parents); OutputError naming it and the reason when that is impossible."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create {what} {folder}: {exc.strerror or exc}") from None
+    return folder
+
+
+def project_file(database: Path) -> Path:
+    """The record ``guidedmatch extract`` keeps next to a database it made (image folder, extraction settings)."""
+    return database.with_name(database.name + ".guidedmatch.json")
+
+
+def _read_project(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise OutputError(f"{path} is unreadable ({exc}); use a new output") from None
+
+
+def write_project(path: Path, project: dict) -> None:
+    from ..evaluation.meta import write_json
+
+    write_json(path, project)
+
+
+def _db_image_names(db_path: Path) -> dict[str, int]:
+    """``{name: number of keypoints}`` of the images in a COLMAP database."""
+    import pycolmap
+
+    try:
+        db = pycolmap.Database.open(str(db_path))
+    except Exception as exc:  # noqa: BLE001 - pycolmap raises RuntimeError subclasses for any SQLite problem
+        raise DatabaseError(f"{db_path}: not a readable COLMAP database ({exc})") from None
+    try:
+        return {img.name: int(db.num_keypoints_for_image(img.image_id)) if db.exists_keypoints(img.image_id) else 0
+                for img in db.read_all_images()}
+    finally:
+        db.close()
+
+
+def _num_matched_pairs(db_path: Path) -> int:
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        return int(db.num_matched_image_pairs())
+    finally:
+        db.close()
+
+
+def check_output(conf: SfmConfig, paths: SfmPaths, project_path: Path, *, matching: bool = True) -> dict:
+    """Refuse, before any work, an output that cannot be written, or a database that belongs to another project or
+    was made with other settings. Returns the project record to write (image folder, extraction settings, and the
+    matching settings when ``matching``).
+
+    Raises:
+        OutputError: the output folder cannot be created or written (the path and the reason), the database was not
+            made by guidedmatch for this image folder (or names images that are not in it), or the settings differ
+            from the recorded ones.
+    """
+    from ..features import writable_folder
+    from .pipeline import list_images
+
+    for folder, what in ((paths.out_dir, "output folder"), (paths.database.parent, "database folder")):
+        writable_folder(folder, what)
+    if paths.database.is_dir():
+        raise OutputError(f"cannot write the database {paths.database}: it is a folder")
+    project = {"format": "guidedmatch-sfm/1", "image_dir": str(paths.image_dir),
+               "extraction": conf.extraction_settings()}
+    if matching:
+        project["matching"] = conf.matching_settings()
+    # the record of this command, else that of the other route to the same database (sfm's or extract's)
+    candidates = (project_path, paths.database.parent / "sfm_project.json", project_file(paths.database))
+    old = next((r for r in map(_read_project, candidates) if r is not None), None)
+    if paths.database.exists():
+        if old is None:   # (the record is written before the database is created)
+            raise OutputError(f"{paths.database} exists but was not made by guidedmatch (no {project_path.name}); "
+                              "refusing to touch another project's database: use a new output path")
+        in_db = _db_image_names(paths.database)
+        if old.get("image_dir") != str(paths.image_dir):
+            raise OutputError(f"{paths.database} belongs to the images in {old.get('image_dir')}, not {paths.image_dir}; "
+                              "use a new output path")
+        foreign = sorted(set(in_db) - set(list_images(paths.image_dir)))
+        if foreign:
+            raise OutputError(f"{paths.database} holds {len(foreign)} image(s) not in {paths.image_dir} "
+                              f"(e.g. {foreign[0]!r}); it belongs to another project: use a new output path")
+        if in_db and old.get("extraction") != project["extraction"]:
+            raise OutputError(f"the features in {paths.database} were extracted with {old.get('extraction')}, not "
+                              f"{project['extraction']}; rerun with the same options or use a new output path")
+        if matching:
+            # projects from before max_inliers_per_pair handed the mapper every inlier: they read as 0
+            old_matching = ({"max_inliers_per_pair": 0, **old["matching"]} if isinstance(old.get("matching"), dict)
+                            else None)
+            if _num_matched_pairs(paths.database) and old_matching is not None and old_matching != project["matching"]:
+                raise OutputError(f"the pairs in {paths.database} were matched with {old.get('matching')}, not "
+                                  f"{project['matching']}; rerun with the same options or use a new output path")
+    return project
+
+
+# --------------------------------------------------------------------------- stage 1: extraction
+def extract_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
+    """Stage 1: features of every image in ``names`` not yet in the database. Returns the stage's record
+    (``time_s``, ``extracted``, ``reused``, ``skipped`` = ``[{"name", "reason"}]`` of damaged or featureless
+    images, ``failed`` = their names, keypoint stats, ``workers``, ``peak_rss_mb``)."""
+    from ..collection.image_folder import ExtractorSpec, extract_folder
+
+    record: dict = {}
+    t0 = time.perf_counter()
+    with peak_memory(record):
+        before = _db_image_names(paths.database) if paths.database.exists() else {}
+        todo = [n for n in names if before.get(n, 0) == 0]
+        workers = (os.cpu_count() or 1) if conf.num_threads == -1 else conf.num_threads
+        say(conf, f"[1/3] extraction ({conf.detector}): {len(todo)} image(s) to extract, {len(names) - len(todo)} "
+                  "reused")
+        spec = ExtractorSpec(detector=conf.detector, max_features=conf.max_features,
+                             max_image_size=conf.max_image_size, peak_threshold=conf.peak_threshold)
+        out = extract_folder(paths.image_dir, paths.database, names, spec, camera_model=conf.camera_model,
+                             camera=parse_camera(conf.camera), single_camera=conf.single_camera, workers=workers,
+                             bad_images=conf.bad_images, progress=conf.progress)
+        after = _db_image_names(paths.database)
+    skipped = out["skipped"] + [{"name": n, "reason": "no features detected (a blank or too small image?)"}
+                                for n in names if n in after and after[n] == 0]
+    counts = [after[n] for n in names if after.get(n, 0) > 0]
+    record.update({"time_s": time.perf_counter() - t0, "detector": conf.detector, "extracted": out["extracted"],
+                   "reused": out["reused"], "skipped": skipped, "failed": [s["name"] for s in skipped],
+                   "workers": out["workers"],
+                   "keypoints": {"total": int(sum(counts)), "min": int(min(counts, default=0)),
+                                 "median": float(np.median(counts)) if counts else 0.0,
+                                 "max": int(max(counts, default=0))}})
+    for s in skipped:
+        say(conf, f"      skipped {s['name']}: {s['reason']}")
+    return record
+
+
+def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLike, image_names: list[str], *,
+                        max_features: int | None = None, max_image_size: int | None = None,
+                        peak_threshold: float | None = None, camera_model: str = "SIMPLE_RADIAL",
+                        camera: str | None = None, single_camera: bool = False, num_threads: int = -1) -> None:
+    """``pycolmap.extract_features`` (CPU SIFT, as ``colmap feature_extractor``, reading the files itself: the
+    pycolmap pipeline the benchmarks compare with) for ``image_names`` of ``image_dir``.
+
+    ``camera="MODEL:params"`` gives every image that camera (one shared camera); ``single_camera`` shares one
+    estimated camera; otherwise COLMAP's AUTO mode (one camera per image size / EXIF focal length).
+    """
+    import pycolmap
+
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = num_threads
+    ext.use_gpu = False
+    ext.max_image_size = int(max_image_size) if max_image_size else COLMAP_MAX_IMAGE_SIZE
+    if max_features:
+        ext.sift.max_num_features = int(max_features)
+    if peak_threshold is not None:
+        ext.sift.peak_threshold = float(peak_threshold)
+    reader = pycolmap.ImageReaderOptions()
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
+    reader.camera_model = camera_model
+    cam = parse_camera(camera)
+    if cam is not None:
+        reader.camera_model = cam[0]
+        reader.camera_params = ",".join(f"{v:.10g}" for v in cam[1])
+        mode = pycolmap.CameraMode.SINGLE
+    pycolmap.extract_features(str(database), str(image_dir), image_names=list(image_names), camera_mode=mode,
+                              reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
+
+
+# --------------------------------------------------------------------------- stage 2: matching
+def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
+                        max_inliers_per_pair: int = 0) -> dict:
+    """The matching stage's work, shared by ``guidedmatch colmap`` and :func:`match_main`: the collection engine over
+    ``pairs`` into the COLMAP ``database`` (pairs already there skipped); with ``geometry="colmap"`` pycolmap's
+    verification of the pairs without a geometry; then at most ``max_inliers_per_pair`` inliers per pair for the
+    mapper (0: all). Returns ``{"report": CollectionReport, "match_time_s", "verified" (pairs verified by COLMAP
+    now, or None), "verify_time_s", "inlier_cap" (the cap's record or None)}``."""
+    from ..collection.engine import match_collection
+    from ..collection.sinks import ColmapSink
+
+    t0 = time.perf_counter()
+    verified, t_verify, cap = None, 0.0, None
+    with ColmapSink(database, geometry=geometry) as sink:
+        report = match_collection(source, pairs, sink, cconf)
+        t_match = time.perf_counter() - t0
+        if geometry == "colmap":
+            t1 = time.perf_counter()
+            verified = sink.verify()   # COLMAP's default verification, of every pair still without a geometry
+            t_verify = time.perf_counter() - t1
+        # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
+        # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
+        if max_inliers_per_pair:
+            cap = sink.cap_inliers(max_inliers_per_pair)
+    return {"report": report, "match_time_s": t_match, "verified": verified, "verify_time_s": t_verify,
+            "inlier_cap": cap}
+
+
+def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
+    """Stage 2: match the pair list with the collection engine into the database (:func:`match_into_database`)."""
+    from ..collection.engine import CollectionConfig
+    from ..collection.pairs import pairs_from_spec
+    from ..collection.sources import ColmapSource
+
+    record: dict = {}
+    t0 = time.perf_counter()
+    with peak_memory(record):
+        source = ColmapSource(paths.database)
+        try:
+            pair_list = pairs_from_spec(conf.pairs, [n for n in source.names() if n in set(names)])
+            say(conf, f"[2/3] matching ({conf.mode}, geometry {conf.geometry}): {len(pair_list.pairs)} pairs "
+                      f"({conf.pairs})")
+            cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
+                                     scheduler=conf.scheduler, progress=conf.progress, log_path=str(paths.pair_log))
+            done = match_into_database(source, pair_list.pairs, paths.database, cconf, geometry=conf.geometry,
+                                       max_inliers_per_pair=conf.max_inliers_per_pair)
+        finally:
+            source.close()
+        pairs = database_pair_stats(paths.database)
+    cap = done["inlier_cap"]
+    if cap is not None:
+        say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
+                  f"{cap['max_inliers']} per pair; {cap['pairs_capped']} pairs capped)")
+    record.update({"time_s": time.perf_counter() - t0, "match_time_s": done["match_time_s"],
+                   "verify_time_s": done["verify_time_s"], "inlier_cap": cap, "pairs": len(pair_list.pairs),
+                   "pair_list_report": pair_list.report, "collection": done["report"].to_dict(),
+                   "verified_pairs": sum(p["verified"] for p in pairs),
+                   "verified_inliers": sum(p["inliers"] for p in pairs), "raw_matches": sum(p["matches"] for p in pairs)})
+    return record
+
+
+def database_pair_stats(database: str | os.PathLike) -> list[dict]:
+    """Per image pair of a COLMAP database: ``name1, name2, matches`` (raw), ``config`` (two-view geometry
+    configuration name or None), ``inliers`` (inlier matches of a verified geometry, else 0), ``verified``."""
+    import pycolmap
+
+    rows = []
+    db = pycolmap.Database.open(str(database))
+    try:   # counts in bulk; each geometry read alone (its inlier matches), so memory stays one pair's worth
+        names = {img.image_id: img.name for img in db.read_all_images()}
+        raw = {int(pid): int(n) for pid, n in zip(*db.read_num_matches())}
+        geo = {int(pid): int(n) for pid, n in zip(*db.read_two_view_geometry_num_inliers())}
+        for pid in sorted(set(raw) | set(geo)):
+            i1, i2 = pycolmap.pair_id_to_image_pair(pid)
+            config = None
+            if pid in geo:
+                config = pycolmap.TwoViewGeometryConfiguration(int(db.read_two_view_geometry(i1, i2).config)).name
+            verified = config in VERIFIED_CONFIGS
+            rows.append({"name1": names.get(i1, str(i1)), "name2": names.get(i2, str(i2)), "matches": raw.get(pid, 0),
+                         "config": config, "inliers": geo[pid] if verified else 0, "verified": bool(verified)})
+    finally:
+        db.close()
+    return rows
+
+
+def verified_inliers(database: str | os.PathLike) -> tuple[int, int]:
+    """``(verified pairs, total inlier matches of verified pairs)`` of a COLMAP database."""
+    rows = database_pair_stats(database)
+    return sum(r["verified"] for r in rows), sum(r["inliers"] for r in rows)
+
+
+def database_summary(database: str | os.PathLike) -> dict:
+    """What the mapper reads from a database, in a few numbers: images, keypoints, pairs with a two-view geometry
+    and their inliers (a model made from a database with the same summary and settings is reused)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        ids, inl = db.read_two_view_geometry_num_inliers()
+        return {"images": int(db.num_images()), "keypoints": int(db.num_keypoints()),
+                "geometries": len(ids), "inliers": int(np.sum(inl)) if len(inl) else 0,
+                "pair_ids_sum": int(np.sum(np.asarray(ids, np.int64))) if len(ids) else 0}
+    finally:
+        db.close()
+
+
+# --------------------------------------------------------------------------- stage 3: mapping
+def run_mapping(database: str | os.PathLike, image_dir: str | os.PathLike, sparse_dir: str | os.PathLike, *,
+                mapper: str = "incremental", num_threads: int = -1, seed: int = 0, fixed_intrinsics: bool = False,
+                record: dict | None = None) -> dict:
+    """``pycolmap.incremental_mapping`` (or ``global_mapping``) into ``sparse_dir/<k>``, the largest model as
+    ``0`` (a temporary sibling folder moved into place when complete, so an interrupted run leaves the previous
+    model). ``record`` (JSON-able) is written into ``sparse_dir/mapping.json`` with the result. Returns ``{"mapper",
+    "time_s", "models": [stats per model, largest first, with its image names], "best": 0 or None}``."""
+    import pycolmap
+
+    sparse_dir = Path(sparse_dir)
+    tmp = sparse_dir.with_name(sparse_dir.name + ".tmp")
+    try:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir(parents=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the model folder {tmp}: {exc.strerror or exc}") from None
+    t0 = time.perf_counter()
+    if mapper == "global":
+        opts = pycolmap.GlobalPipelineOptions()
+        opts.num_threads = num_threads
+        opts.random_seed = seed
+        opts.mapper.random_seed = seed
+        opts.mapper.global_positioning.use_gpu = False   # CPU solvers (no warning about a missing CUDA build)
+        opts.mapper.bundle_adjustment.ceres.use_gpu = False
+        if fixed_intrinsics:
+            ba = opts.mapper.bundle_adjustment
+            ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
+        recs = pycolmap.global_mapping(str(database), str(image_dir), str(tmp), options=opts)
+    else:
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.num_threads = num_threads
+        opts.random_seed = seed
+        if fixed_intrinsics:
+            opts.ba_refine_focal_length = False
+            opts.ba_refine_principal_point = False
+            opts.ba_refine_extra_params = False
+        recs = pycolmap.incremental_mapping(str(database), str(image_dir), str(tmp), options=opts)
+    elapsed = time.perf_counter() - t0
+    models = sorted(((int(k), r) for k, r in recs.items()), key=lambda kr: (-kr[1].num_reg_images(), kr[0]))
+    # COLMAP numbers models in the order it found them; renumber so that sparse/0 is the largest
+    final = sparse_dir.with_name(sparse_dir.name + ".new")
+    if final.exists():
+        shutil.rmtree(final)
+    final.mkdir()
+    stats = []
+    for new_idx, (_, rec) in enumerate(models):
+        d = final / str(new_idx)
+        d.mkdir()
+        rec.write(str(d))
+        stats.append(dict(reconstruction_stats(rec), path=str(sparse_dir / str(new_idx))))
+    result = {"mapper": mapper, "time_s": elapsed, "models": stats, "best": 0 if stats else None}
+    from ..evaluation.meta import write_json
+
+    write_json(final / "mapping.json", dict(record or {}, result=result))
+    shutil.rmtree(tmp)
+    if sparse_dir.exists():
+        shutil.rmtree(sparse_dir)
+    os.replace(final, sparse_dir)
+    return result
+
+
+def reconstruction_stats(rec: Any) -> dict:
+    """Registered images, 3-D points, observations, mean track length, mean reprojection error (px) of a model."""
+    return {"registered": int(rec.num_reg_images()), "images": int(rec.num_images()),
+            "points3D": int(rec.num_points3D()), "observations": int(rec.compute_num_observations()),
+            "mean_track_length": float(rec.compute_mean_track_length()),
+            "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()),
+            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+            "registered_names": sorted(rec.image(i).name for i in rec.reg_image_ids())}
+
+
+def map_main(conf: SfmConfig, paths: SfmPaths, fixed_intrinsics: bool | None = None) -> dict:
+    """Stage 3: mapping from the database. A model in ``paths.sparse`` made from a database with the same
+    :func:`database_summary` and the same mapping settings is reused (``reused: True``); otherwise the mapper runs
+    and the previous model is replaced when it is done."""
+    fixed = conf.camera is not None if fixed_intrinsics is None else bool(fixed_intrinsics)
+    key = {"database": database_summary(paths.database), "settings": dict(conf.mapping_settings(), fixed=fixed)}
+    record: dict = {}
+    with peak_memory(record):
+        try:
+            old = json.loads(paths.mapping_record.read_text()) if paths.mapping_record.is_file() else None
+        except (OSError, json.JSONDecodeError):
+            old = None
+        if old and {k: old.get(k) for k in key} == key and "result" in old and all(
+                Path(m["path"]).is_dir() for m in old["result"]["models"]):
+            say(conf, f"[3/3] mapping ({conf.mapper}): the model in {paths.sparse} is up to date (same database and "
+                      "settings); reused")
+            result = dict(old["result"], reused=True, time_s=0.0)
+        else:
+            say(conf, f"[3/3] mapping (pycolmap.{conf.mapper}_mapping)")
+            result = dict(run_mapping(paths.database, paths.image_dir, paths.sparse, mapper=conf.mapper,
+                                      num_threads=conf.num_threads, seed=conf.seed,
+                                      fixed_intrinsics=fixed, record=key), reused=False)
+    return dict(result, **record)
+
+
+def models_summary(mapping: dict, num_images: int) -> str:
+    """``"8/8 images registered, 4,321 points"`` or, for several models, ``"3 models: 25 + 8 + 2 of 40 images
+    registered, ..."``."""
+    models = mapping.get("models") or []
+    if not models:
+        return f"0/{num_images} images registered (no model)"
+    pts = sum(m["points3D"] for m in models)
+    if len(models) == 1:
+        return f"{models[0]['registered']}/{num_images} images registered, {pts:,} points"
+    return (f"{len(models)} models: {' + '.join(str(m['registered']) for m in models)} of {num_images} images "
+            f"registered, {pts:,} points")
