@@ -461,3 +461,27 @@ def test_worker_processes_write_the_same_database_as_one_process(tmp_path, monke
     finally:
         a.close()
         b.close()
+
+
+def test_a_dead_worker_process_is_a_clear_error(tmp_path):
+    """A worker process that dies (here: spawned from a script without a ``__main__`` guard, so it cannot start)
+    is one clear error naming the likely causes, not a BrokenProcessPool traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    _damaged_files(tmp_path / "img")
+    script = tmp_path / "noguard.py"
+    script.write_text(
+        "import guidedmatch.collection.image_folder as f\n"
+        "f.IN_PROCESS_MAX_MP = 0.0\n"
+        "try:\n"
+        f"    f.extract_folder({str(tmp_path / 'img')!r}, {str(tmp_path / 'x.db')!r}, ['good.jpg', 'good.png'],\n"
+        "                     f.ExtractorSpec(detector='ours:orb'), workers=2, progress=False)\n"
+        "except f.MemoryLimitError as exc:\n"
+        "    print('CAUGHT', exc)\n")
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                          env={"PYTHONPATH": src, "PATH": "/usr/bin:/bin"})
+    assert "CAUGHT an extraction worker process died" in proc.stdout, proc.stdout + proc.stderr
+    assert "__main__" in proc.stdout

@@ -257,9 +257,10 @@ def _results(tasks: list, workers: int):
             while pending:
                 yield pending.popleft().result()
         except BrokenProcessPool:
-            raise MemoryLimitError("an extraction worker process died (killed by the system: out of memory?); the "
+            raise MemoryLimitError("an extraction worker process died: killed by the system (out of memory?) -- the "
                                    "images written so far are kept: rerun with fewer processes (--threads 1) or a "
-                                   "smaller --max-image-size") from None
+                                   "smaller --max-image-size -- or, from a Python script, the script lacks an "
+                                   "`if __name__ == \"__main__\":` guard (worker processes are spawned)") from None
         finally:
             for f in pending:
                 f.cancel()
