@@ -137,7 +137,7 @@ def check_output(conf: SfmConfig, paths: SfmPaths, project_path: Path, *, matchi
             from the recorded ones.
     """
     from ..features import writable_folder
-    from .pipeline import list_images
+    from ..collection.image_folder import list_images
 
     for folder, what in ((paths.out_dir, "output folder"), (paths.database.parent, "database folder")):
         writable_folder(folder, what)
