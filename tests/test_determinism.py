@@ -5,7 +5,7 @@ scenes, synthetic multi-view float features with an unrelated view, and an adver
 descriptors -- are matched with 1 and 2 BLAS threads (threadpoolctl), 1 and 2 Numba threads, directly, through
 ``match_collection`` in-process with 1 and 3 pair threads and on a one-worker Dask cluster; every run must return the
 same pairs and bit-identical distances and verdicts. The exact recompute itself is checked against a slow, obviously
-correct reference (a Python float64 loop per pair), and the certificate's fallback is exercised by near-ties.
+correct reference (a Python float64 loop per pair, in the documented order), and the certificate's fallback is exercised by near-ties.
 
 This machine has one CPU type; what makes the results CPU-independent is argued in guidedmatch/exact.py: every
 reported distance is a float64 sum in index order without fast-math (no reduction whose order depends on the vector
@@ -37,12 +37,13 @@ SIZE = (800, 600)
 
 # ------------------------------------------------------------------------------------------------ references
 def ref_sq(a: np.ndarray, b: np.ndarray) -> float:
-    """Squared L2 in Python floats (IEEE double), one dimension after the other: the obviously correct order."""
-    s = 0.0
-    for x, y in zip(a.tolist(), b.tolist()):
+    """Squared L2 in Python floats (IEEE double) in guidedmatch.exact's documented order: dimension k into running
+    sum k % 4, in index order, then (s0 + s1) + (s2 + s3)."""
+    s = [0.0, 0.0, 0.0, 0.0]
+    for k, (x, y) in enumerate(zip(a.tolist(), b.tolist())):
         d = float(x) - float(y)
-        s += d * d
-    return s
+        s[k % 4] += d * d
+    return (s[0] + s[1]) + (s[2] + s[3])
 
 
 def ref_top2(q: np.ndarray, t: np.ndarray):
@@ -58,7 +59,7 @@ def ref_top2(q: np.ndarray, t: np.ndarray):
 
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 40), st.integers(1, 33), st.integers(0, 2**31 - 1), st.sampled_from([1e-3, 1.0, 300.0]))
-def test_sqdist_rows_is_the_sequential_float64_sum(nq, dim, seed, scale):
+def test_sqdist_rows_is_the_documented_float64_sum(nq, dim, seed, scale):
     rng = np.random.default_rng(seed)
     q = (rng.standard_normal((nq, dim)) * scale).astype(np.float32)
     t = (rng.standard_normal((7, dim)) * scale).astype(np.float32)
@@ -68,6 +69,8 @@ def test_sqdist_rows_is_the_sequential_float64_sum(nq, dim, seed, scale):
         for c in range(3):
             j = cand[i, c]
             assert got[i, c] == (ref_sq(q[i], t[j]) if j >= 0 else np.inf)  # bit for bit
+            if j >= 0:  # and the true value to float64 rounding
+                assert got[i, c] == pytest.approx(float(np.sum((q[i].astype(np.float64) - t[j]) ** 2)), rel=1e-13)
 
 
 @settings(max_examples=30, deadline=None)
@@ -236,6 +239,8 @@ class _PerturbedIndex:
 
     def search_preassigned(self, q, k, Iq, Dq):
         D, I = self._index.search_preassigned(q, k, Iq, Dq)
+        if np.array_equal(D[np.isfinite(D)], np.round(D[np.isfinite(D)])) and np.array_equal(q, np.round(q)):
+            return D, I  # integer distances of byte-valued descriptors: exact on every CPU
         r = self._rng.uniform(-1.0, 1.0, D.shape) * (q.shape[1] / 4.0) * exact.U32
         return (D * (1.0 + r)).astype(np.float32), I
 
@@ -244,11 +249,15 @@ def simulate_another_cpu(monkeypatch, seed: int) -> None:
     """Every fast distance perturbed within its error bound, as a CPU with another vector width, another BLAS or
     another thread split may compute it: the GEMM products (kernels.topk_gemm_serial, behind knn2, DenseKnn2 and the
     IVF coarse step) by up to 32 float32 ulps relative (the bound allows D/2 for D >= 64), the guided kernel's float
-    sums and faiss's fine distances by up to D/4 ulps relative (re-sorted: the order among near-ties may change)."""
+    sums and faiss's fine distances by up to D/4 ulps relative (re-sorted: the order among near-ties may change).
+    Integer distances (byte-valued descriptors below 2^24, Hamming) are exact on every CPU and stay as they are."""
     rng = np.random.default_rng(seed)
     topk, guided, index = kernels.topk_gemm_serial, kernels.guided_top2, gm.PreparedImage.index
 
     def topk_perturbed(dot, nn2, qn, k):
+        if all(np.array_equal(x, np.round(x)) for x in (dot, nn2, qn)) and (qn.max(initial=0) + nn2.max(initial=0)
+                                                                          < exact.EXACT_INT):
+            return topk(dot, nn2, qn, k)  # integers below 2^24 (byte-valued descriptors): exact on every CPU
         r = rng.uniform(-1.0, 1.0, dot.shape) * 32.0 * exact.U32
         return topk(np.ascontiguousarray((dot * (1.0 + r)).astype(np.float32)), nn2, qn, k)
 

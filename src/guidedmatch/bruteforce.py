@@ -170,7 +170,8 @@ class DenseKnn2:
     bit for bit, whatever the number of chunks (threads) or the BLAS.
     """
 
-    def __init__(self, d2: np.ndarray, d2_sqnorms: np.ndarray | None = None, threads: int | None = None):
+    def __init__(self, d2: np.ndarray, d2_sqnorms: np.ndarray | None = None, threads: int | None = None,
+                 byte_exact: bool = False):
         self.d2 = np.ascontiguousarray(d2, np.float32)
         n2 = len(self.d2)
         nn2 = np.einsum("ij,ij->i", self.d2, self.d2) if d2_sqnorms is None else np.asarray(d2_sqnorms, np.float32)
@@ -178,6 +179,7 @@ class DenseKnn2:
         cuts = np.linspace(0, n2, k + 1).astype(np.int64)
         self.chunks = [(self.d2[a:b], nn2[a:b], int(a)) for a, b in zip(cuts[:-1], cuts[1:])]
         self.tn_max = float(np.max(nn2)) if n2 else 0.0
+        self.byte_exact = bool(byte_exact)  # d2 holds integers 0..255 (query(..., byte_exact=True) may skip work)
         self._pool = None
         self._limit = None
 
@@ -201,7 +203,9 @@ class DenseKnn2:
         idx, dist = kernels.topk_gemm_serial(q @ t.T, tn, qn, min(exact.K, len(t)))
         return np.where(idx >= 0, idx + off, -1), dist
 
-    def query(self, q: np.ndarray):
+    def query(self, q: np.ndarray, byte_exact: bool = False):
+        """``byte_exact``: the queries hold integers 0..255 too; with byte-valued targets and squared norms below
+        2^24 every GEMM distance is then an exact integer and the best K are only sorted, not recomputed."""
         q = np.ascontiguousarray(q, np.float32)
         nq = len(q)
         if nq == 0 or len(self.d2) == 0:
@@ -219,7 +223,10 @@ class DenseKnn2:
             o = np.lexsort((big, dist), axis=-1)[:, :exact.K]
             r = np.arange(nq)[:, None]
             idx, dist = idx[r, o], dist[r, o]
-        top, sq = exact.exact_top(q, self.d2, idx, dist, 2, delta=exact.gemm_delta(qn, self.tn_max, q.shape[1]))
+        if byte_exact and self.byte_exact and float(qn.max()) + self.tn_max < exact.EXACT_INT:
+            top, sq = exact.top_of_exact(idx, dist, 2)
+        else:
+            top, sq = exact.exact_top(q, self.d2, idx, dist, 2, delta=exact.gemm_delta(qn, self.tn_max, q.shape[1]))
         return top[:, 0], sq[:, 0], top[:, 1], sq[:, 1]
 
 

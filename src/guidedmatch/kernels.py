@@ -152,7 +152,7 @@ def _topk_gemm_py(dot, nn2, qn, k):
 
     ``dot (R, C) float32`` = query·targetᵀ, ``nn2 (C,)`` and ``qn (R,)`` squared norms; the distance is
     ``max((qn + nn2) - 2 dot, 0)`` in float32, in that order (faiss's ``exhaustive_L2sqr_blas``). Equal distances
-    keep the lower column index. ``k`` is a few (the IVF coarse step's nprobe + 2, brute force's
+    keep the lower column index. ``k`` is a few (the IVF coarse step's nprobe + 1, brute force's
     :data:`guidedmatch.exact.K`): one comparison per column, an insertion only when the column beats the current
     ``k``-th. The values are approximate (float32 GEMM); the callers recompute the winners exactly
     (:mod:`guidedmatch.exact`).

@@ -210,15 +210,17 @@ class PreparedImage:
         lists = [int(x) for x in np.asarray(lists).ravel() if x >= 0]
         return np.concatenate([self._list_ids[x] for x in lists]) if lists else np.zeros(0, np.int64)
 
-    def search2(self, queries: np.ndarray):
+    def search2(self, queries: np.ndarray, byte_exact: bool = False):
         """Approximate 2-NN of float ``queries (Q, D)`` in this image: ``(i1, s1, i2, s2, comparisons)``.
 
-        The probed cells: the ``nprobe`` centroids nearest each query, exactly (the GEMM's ``nprobe + 2`` nearest
-        recomputed and certified, :func:`guidedmatch.exact.exact_top`); then the :data:`~guidedmatch.exact.K` nearest
+        The probed cells: the ``nprobe`` centroids nearest each query, exactly (the set of the GEMM's ``nprobe``
+        nearest, certified by the gap to the next one against the GEMM's error bound, else recomputed exactly,
+        :mod:`guidedmatch.exact`), scanned in index order; then the :data:`~guidedmatch.exact.K` nearest
         descriptors in those cells by faiss, recomputed and certified the same way (a near-tie at the K-th: every
         descriptor of the probed cells exactly). ``s1``, ``s2`` are the exact squared L2 distances (float64) to the
         two nearest descriptors in the probed cells (``-1`` / ``inf`` when fewer than two were found), the same on
-        every CPU and thread count given the index; ``comparisons`` = the number of distance evaluations of the
+        every CPU and thread count given the index (``byte_exact``: the queries are byte-valued too, and this image's
+        8-bit codes give exact integer distances: faiss's K are only sorted, not recomputed); ``comparisons`` = the number of distance evaluations of the
         search: ``nlist`` centroid distances per query plus the size of every probed cell (the exact recompute of
         a few of them is not counted again).
         """
@@ -235,19 +237,36 @@ class PreparedImage:
         # not depend on how faiss's BLAS was loaded (docs/pairs.md)
         cent, cn = self._centroids()
         nprobe = min(int(index.nprobe), self.nlist)
-        Ic, Dc = kernels.topk_gemm(q, cent, cn, min(nprobe + 2, self.nlist), threads)
-        qn = np.einsum("ij,ij->i", q, q)
-        Iq, Dq = exact.exact_top(q, cent, Ic, Dc, nprobe,
-                                 delta=exact.gemm_delta(qn, float(cn.max()), q.shape[1]))
-        Dq = Dq.astype(np.float32)
+        Ic, Dc = kernels.topk_gemm(q, cent, cn, min(nprobe + 1, self.nlist), threads)
+        Iq, Dq = Ic[:, :nprobe], Dc[:, :nprobe]
+        if Ic.shape[1] > nprobe:  # which cells must not depend on the GEMM's rounding: certify the set
+            qn = np.einsum("ij,ij->i", q, q)
+            delta = exact.gemm_delta(qn, float(cn.max()), q.shape[1])
+            bad = np.flatnonzero(~(Dc[:, nprobe].astype(np.float64) - delta > Dc[:, nprobe - 1] + delta))
+            if len(bad):  # a near-tie at the nprobe-th cell: those queries' cells exactly, among every centroid the
+                # bound cannot rule out (approximate distance within 2 delta of the nprobe-th)
+                Iq, Dq = Iq.copy(), Dq.copy()
+                approx = (qn[bad, None] + cn[None, :]) - 2.0 * (q[bad] @ cent.T)
+                for r, i in enumerate(bad):
+                    near = np.flatnonzero(approx[r] <= np.sort(approx[r])[nprobe - 1] + 2.0 * delta[i])
+                    Iq[i], sq = exact.exact_top_among(q[i], cent, near, nprobe)
+                    Dq[i] = sq.astype(np.float32)
+        # cells in index order: the scan order, hence faiss's order among equal distances, is the same on every CPU
+        # (faiss ignores the coarse distances of these non-residual indexes)
+        o = np.argsort(Iq, axis=1, kind="stable")
+        r = np.arange(len(q))[:, None]
+        Iq, Dq = np.ascontiguousarray(Iq[r, o]), np.ascontiguousarray(Dq[r, o], np.float32)
         k = exact.K
         with _faiss_threads(threads):
             D, I = index.search_preassigned(q, k, Iq, Dq)
         comparisons = int(len(q)) * self.nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
         I = I.astype(np.int64)
         D = np.where(I >= 0, D, np.inf).astype(np.float32)
-        top, sq = exact.exact_top(q, self.features.descriptors, I, D, 2, gamma=exact.sum_gamma(q.shape[1]),
-                                  domain=lambda i: self._list_members(Iq[i]))
+        if byte_exact and self.byte_exact:
+            top, sq = exact.top_of_exact(I, D, 2)
+        else:
+            top, sq = exact.exact_top(q, self.features.descriptors, I, D, 2, gamma=exact.sum_gamma(q.shape[1]),
+                                      domain=lambda i: self._list_members(Iq[i]))
         return top[:, 0], sq[:, 0], top[:, 1], sq[:, 1], comparisons
 
 
@@ -348,7 +367,7 @@ class UnguidedSearch:
         if self.kind == "gemm" or (self.kind == "ivf" and self.exact_budget > 0):
             from .bruteforce import DenseKnn2
 
-            self._dense = DenseKnn2(self.p2.descriptors, self.p2.sqnorms).__enter__()
+            self._dense = DenseKnn2(self.p2.descriptors, self.p2.sqnorms, byte_exact=self.p2.byte_exact).__enter__()
         if self.kind == "ivf":
             # the index's coarse GEMMs (search2) run one per kernel thread: BLAS single-threaded meanwhile, as in
             # DenseKnn2 (two collection threads' unrelated 68k pairs: 1.3-1.6 s with BLAS's own threads on top,
@@ -372,7 +391,7 @@ class UnguidedSearch:
         if self.kind == "popcount":
             i1, s1, i2, s2 = kernels.hamming_top2(self.p1.kdesc[queries], self.p2.kdesc)
         elif self.exact:
-            i1, s1, i2, s2 = self._dense.query(self.p1.descriptors[queries])
+            i1, s1, i2, s2 = self._dense.query(self.p1.descriptors[queries], byte_exact=self.p1.byte_exact)
             self.exact_comparisons += len(queries) * n2
         else:
             if self.p2._index is None:
@@ -381,7 +400,7 @@ class UnguidedSearch:
                 t0 = time.perf_counter()
                 self.p2.index()
                 self.index_build_s += time.perf_counter() - t0
-            out = self.p2.search2(self.p1.descriptors[queries])
+            out = self.p2.search2(self.p1.descriptors[queries], byte_exact=self.p1.byte_exact)
             self.ivf_queries += len(queries)
             self.ivf_comparisons += out[4]
             return out
