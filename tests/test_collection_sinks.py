@@ -622,15 +622,18 @@ class _Statvfs:
 
 def test_colmap_sink_refuses_a_full_disk_before_the_transaction(db_copy, base, monkeypatch):
     """pycolmap commits a transaction in a C++ destructor: SQLite's "disk is full" there aborts the process
-    (SIGABRT, found by the fault bench). The sink checks the space first: OutputError naming the database, at
-    open (before any work) and before each pair; the pairs stored before stay complete and resumable."""
+    (SIGABRT, found by the fault bench). The sink checks the space before each pair: OutputError naming the
+    database; the pairs stored before stay complete and resumable. Opening it needs no space (a rerun with
+    nothing left to write works on a full disk)."""
     import guidedmatch.collection.sinks as sinks
 
     _, mv, _, r, g = base
     real = os.statvfs
     monkeypatch.setattr(sinks.os, "statvfs", lambda p: _Statvfs(sinks.SPACE_MARGIN // 2))
-    with pytest.raises(OutputError, match=r"cannot write the COLMAP database .*db\.db: disk full: 4\.0 MB free"):
-        ColmapSink(db_copy)
+    with ColmapSink(db_copy) as sink:
+        with pytest.raises(OutputError, match=r"cannot write the COLMAP database .*db\.db: disk full: 4\.0 MB free"):
+            sink.write(mv.names[0], mv.names[1], r.pairs, None, g)
+        assert sink.done_pairs() == set()
     monkeypatch.setattr(sinks.os, "statvfs", real)
     with ColmapSink(db_copy) as sink:
         sink.write(mv.names[0], mv.names[1], r.pairs, None, g)
@@ -646,12 +649,14 @@ def test_colmap_sink_refuses_past_the_file_size_limit(db_copy):
     import resource
 
     soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    sink = ColmapSink(db_copy)
     resource.setrlimit(resource.RLIMIT_FSIZE, (db_copy.stat().st_size + (1 << 20), hard))
     try:
         with pytest.raises(OutputError, match=r"db\.db.*file size limit: db\.db .* may not grow past"):
-            ColmapSink(db_copy)
+            sink.check_space()
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        sink.close()
 
 
 def test_h5_sink_full_disk_is_an_output_error_and_resumes(tmp_path):

@@ -233,7 +233,6 @@ class ColmapSink(MatchSink):
         if not self.path.exists():
             raise DatabaseError(f"COLMAP database not found: {self.path}")
         _check_writable(self.path, "COLMAP database")
-        self.check_space()
         self._lock = WriteLock(self.path).acquire()
         try:
             self._db = _open_colmap(self.path)
