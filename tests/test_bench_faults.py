@@ -143,10 +143,19 @@ def test_table_and_main_wiring(tmp_path, monkeypatch):
     r.add(True, lost=0)
     r.add(False, lost=2, corrupt=True, bug=True, case="c", rc=1, message="m")
     monkeypatch.setattr(fi, "corrupt_inputs", lambda *a, **k: [r])
-    args = bf.build_parser().parse_args(["--out", str(tmp_path), "--faults", "inputs"])
+    fz = Row("fuzz")
+    fz.trials = 3
+    fz.details.append(dict(command="match", examples=3, failed=0, timeouts=0, exit_codes=["2"], failures=[]))
+    monkeypatch.setattr(fi, "fuzz_arguments", lambda *a, **k: fz)
+    args = bf.build_parser().parse_args(["--out", str(tmp_path), "--faults", "inputs,fuzz"])
     assert bf.main(args) == 0
     md = (tmp_path / "faults.md").read_text()
-    assert "| x | 2 | 1 | 2 | 1 | 1 |" in md and table_markdown([r]) in md
+    assert "| x | 2 | 1 | 2 | 1 | 1 |" in md and table_markdown([r, fz]) in md and "| match | 3 | 0 | 0 | 2 |" in md
+    fz.fault = "fuzz again"   # --merge-faults keeps the rows this run does not produce
+    args = bf.build_parser().parse_args(["--out", str(tmp_path), "--faults", "fuzz", "--merge-faults"])
+    assert bf.main(args) == 0
+    md = (tmp_path / "faults.md").read_text()
+    assert "| x | 2 | 1 | 2 | 1 | 1 |" in md and "| fuzz | 3 |" in md and "| fuzz again | 3 |" in md
     data = json.loads((tmp_path / "faults.json").read_text())
     assert "git_commit" in data["meta"] and data["kill_trials"] == 30
     assert data["rows"][0]["details"][1]["case"] == "c" and "timestamp_utc" in data["meta"]

@@ -52,6 +52,9 @@ def add_arguments(parser) -> None:
                         help="faults: comma-separated subset of kill, sfm-kill, disk, writers, inputs, fuzz")
     parser.add_argument("--work", default=None, metavar="DIR",
                         help="faults: scratch folder (default: a temporary folder, removed afterwards)")
+    parser.add_argument("--merge-faults", action="store_true",
+                        help="faults: keep the rows of an existing OUT/faults.json that this run does not produce "
+                             "(their run metadata is kept under merged_runs)")
 
 
 FAULT_CLASSES = ("kill", "sfm-kill", "disk", "writers", "inputs", "fuzz")
@@ -133,7 +136,8 @@ def kill_colmap(coll: dict, work: Path, backend: str, trials: int, rng: np.rando
         row.add(ok, lost=lost, corrupt=bool(broken or diffs), bug=rerun.bug or run.bug, kill_at_s=round(t, 3),
                 killed=info["killed"], committed_before=len(committed), rerun_rc=rerun.rc, rerun_skipped=skipped,
                 after_kill=broken, after_rerun=diffs, orphans=len(info["orphans"]),
-                rerun_tail="" if ok else rerun.tail())
+                rerun_tail="" if ok else rerun.tail(), killed_run_traceback=run.bug_text(),
+                rerun_traceback=rerun.bug_text())
         print(f"  {row.fault} {k + 1}/{trials}: kill at {t:.2f} s, {len(committed)} pairs stored, rerun rc "
               f"{rerun.rc} skipped {skipped}{'' if ok else ' FAILED'}", flush=True)
     if orphans:
@@ -481,9 +485,15 @@ def _details_markdown(rows) -> str:
     for r in rows:
         lines += ["", f"### {r.fault}", ""]
         lines += [f"- {n}" for n in r.notes]
-        failed = [d for d in r.details if not d["ok"]]
+        failed = [d for d in r.details if not d.get("ok", True)]
         cases = [d for d in r.details if "case" in d]
-        if cases:
+        commands = [d for d in r.details if "command" in d]
+        if commands:  # the fuzzer: one line per subcommand
+            lines += ["", "| subcommand | argument lists | failed | stopped after 30 s | exit codes |",
+                      "|---|---:|---:|---:|---|"]
+            lines += [f"| {d['command']} | {d['examples']} | {d['failed']} | {d['timeouts']} | "
+                      f"{', '.join(d['exit_codes'])} |" for d in commands]
+        elif cases:
             lines += ["", "| case | result | exit | message |", "|---|---|---:|---|"]
             for d in cases:
                 msg = str(d.get("message") or "; ".join(d.get("messages", [])) or "").replace("\n", " / ")
@@ -531,10 +541,19 @@ def main(args) -> int:
     rows: list[Row] = []
     errors: list[str] = []
     state = {"coll": None}
+    kept: list[Row] = []
+    if getattr(args, "merge_faults", False) and (out / "faults.json").exists():
+        import json
+
+        old = json.loads((out / "faults.json").read_text())
+        kept = [_row_from_dict(r) for r in old.get("rows", [])]
+        meta["merged_runs"] = [old.get("meta")] + old.get("meta", {}).get("merged_runs", [])
 
     def write(final: bool) -> None:
         """faults.md + faults.json with the rows so far (rewritten after each class: a crash keeps the rest)."""
         wall = time.perf_counter() - t_start
+        mine = {r.fault for r in rows}
+        all_rows = [r for r in kept if r.fault not in mine] + rows
         meta["load_average_end"] = os.getloadavg()[0]
         n_img = len(state["coll"]["names"]) if state["coll"] else 0
         md = ["# Fault injection", "",
@@ -542,17 +561,19 @@ def main(args) -> int:
               f"{n_img} rendered 800x600 views, 2000 SIFT features each; every trial a fresh `guidedmatch` process. "
               "Survived = the output is correct after the fault and after a rerun (see "
               "`guidedmatch.evaluation.bench_faults` for the exact checks per class).", "",
-              table_markdown(rows), "",
+              table_markdown(all_rows), "",
               f"Run: {wall / 60:.1f} min{'' if final else ' (in progress)'}, commit {meta.get('git_commit')}"
               f"{' (dirty)' if meta.get('git_dirty') else ''}, {meta.get('cpu_model')}, load average "
               f"{meta.get('load_average'):.2f} at the start, {meta['load_average_end']:.2f} at the end "
-              f"(other jobs shared the 2 cores); seed {seed}."]
+              f"(other jobs shared the 2 cores); seed {seed}."
+              + (f" Rows of {len(meta['merged_runs'])} earlier run(s) kept (--merge-faults; their metadata in "
+                 "faults.json, merged_runs)." if kept else "")]
         md += [f"\nBench error: {e}" for e in errors]
-        md += [_details_markdown(rows), ""]
+        md += [_details_markdown(all_rows), ""]
         atomic_write_text(out / "faults.md", "\n".join(md))
         write_json(out / "faults.json", {"meta": meta, "wall_s": wall, "complete": final, "kill_trials": kills,
                                          "sfm_kill_trials_per_stage": sfm_kills, "fuzz_examples": fuzz_n,
-                                         "errors": errors, "rows": [r.to_dict() for r in rows]})
+                                         "errors": errors, "rows": [r.to_dict() for r in all_rows]})
 
     def step(name: str, fn) -> None:
         try:
@@ -594,6 +615,11 @@ def main(args) -> int:
     print(table_markdown(rows))
     print(f"wrote {out / 'faults.md'} and {out / 'faults.json'}")
     return 0
+
+
+def _row_from_dict(d: dict) -> Row:
+    return Row(d["fault"], d["trials"], d["survived"], d["finished_work_lost"], d["corrupt_outputs"], d["tracebacks"],
+               list(d.get("notes", [])), list(d.get("details", [])))
 
 
 def build_parser() -> argparse.ArgumentParser:

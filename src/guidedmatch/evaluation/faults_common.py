@@ -40,6 +40,11 @@ class Run:
         """A traceback or an internal error on stderr."""
         return any(m in self.stderr for m in BUG_MARKERS)
 
+    def bug_text(self, n: int = 1500) -> str:
+        """The stderr from the first traceback / internal error on (empty when there is none)."""
+        at = min((self.stderr.find(m) for m in BUG_MARKERS if m in self.stderr), default=-1)
+        return "" if at < 0 else self.stderr[at:at + n]
+
     def tail(self, n: int = 300) -> str:
         text = (self.stderr.strip() or self.stdout.strip()).replace("\r", "\n")
         lines = [ln for ln in text.splitlines() if ln.strip() and "it/s]" not in ln and "%|" not in ln]
