@@ -51,8 +51,12 @@ def test_kill_9_mid_run_then_rerun(coll, backend, after):
     in the uninterrupted run, integrity_check says ok; the rerun skips every stored pair and ends with the same
     tables (pairs, matches, inlier sets, F, H) -- the uninterrupted in-process run's also for the Dask backend."""
     row = bf.kill_colmap(coll, coll["work"], backend, len(after), np.random.default_rng(0), after_pairs=after)
-    assert (row.trials, row.survived, row.lost, row.corrupt, row.tracebacks) == (len(after), len(after), 0, 0, 0), \
-        row.details
+    assert (row.trials, row.survived, row.lost, row.corrupt) == (len(after), len(after), 0, 0), row.details
+    # the rerun prints no traceback; the killed run's Dask workers may (a heartbeat's CommClosedError once their
+    # scheduler died with the main process) -- counted in the bench's table, not asserted here
+    assert not any(d["rerun_traceback"] for d in row.details), row.details
+    if backend == "in-process":
+        assert row.tracebacks == 0, row.details
     assert all(d["killed"] for d in row.details)
     assert sum(d["committed_before"] for d in row.details) > 0   # the kills came after pairs were stored
 
