@@ -240,8 +240,9 @@ def _check_finite(xy: np.ndarray, path: Path, name: str) -> None:
     """InputError naming the file and the image when keypoint coordinates are NaN / inf."""
     bad = ~np.isfinite(xy).all(axis=1) if len(xy) else np.zeros(0, bool)
     if bad.any():
-        raise InputError(f"{path}: image {name!r} has {int(bad.sum())} of {len(xy)} keypoints with NaN / inf "
-                         f"coordinates (first: keypoint {int(np.flatnonzero(bad)[0])}); re-extract its features")
+        raise InputError(f"{path}: image {name!r} has {int(bad.sum())} of {len(xy)} keypoints with non-finite "
+                         f"(NaN / inf) coordinates (first: keypoint {int(np.flatnonzero(bad)[0])}); re-extract its "
+                         "features")
 
 
 def _descriptor_kind(ftype, nbytes: int) -> str:
@@ -420,17 +421,16 @@ class ColmapSource(FeatureSource):
 
     def validate(self, names=None) -> None:
         """Read every image's keypoints and descriptors (one image at a time): :class:`DatabaseError` for a blob
-        whose size does not match its rows x cols, :class:`InputError` for NaN / inf keypoint coordinates or mixed
-        descriptor types -- each naming the database and the image.
+        whose size does not match its rows x cols, :class:`InputError` for mixed descriptor types -- each naming the
+        database and the image. (NaN / inf keypoint coordinates are refused by :meth:`load`: the pairs of that
+        image fail and are reported, the others are matched.)
 
         Cost: one pass over the keypoint and descriptor tables (~1 MB per 8k SIFT features).
         """
         bad = []
         for name in (self._names if names is None else names):
             self._check_name(name)
-            kp, d = self._read(name)
-            kp = np.asarray(kp, dtype=np.float64)
-            _check_finite(kp.reshape(len(kp), -1)[:, :2] if len(kp) else np.zeros((0, 2)), self.path, name)
+            _, d = self._read(name)
             data = np.asarray(d.data)
             nbytes = int(data.shape[1]) if data.ndim == 2 else 0
             meta = (_descriptor_kind(d.type, nbytes), nbytes)
@@ -533,12 +533,6 @@ class H5Source(FeatureSource):
         _check_finite(kp, self.path, name)
         return kp
 
-    def validate(self, names=None) -> None:
-        """Read every image's keypoints (one image at a time): :class:`InputError` naming the file and the image
-        for NaN / inf coordinates, :class:`DatabaseError` for a dataset that cannot be read."""
-        for name in (self._names if names is None else names):
-            self._check_name(name)
-            self._keypoints(name)
 
     def load(self, name: str) -> Features:
         self._check_name(name)

@@ -32,7 +32,9 @@ def run_inprocess(argv, timeout: float = 0) -> Run:
     """``guidedmatch.cli.main(argv)`` in this process: exit status (SystemExit included), stdout, stderr; an
     exception escaping ``main`` is written to stderr as a traceback (rc None). ``timeout`` s (main thread only):
     stopped, rc None, stderr ends with ``[timeout]``."""
-    from ..cli import main
+    import importlib
+
+    main = importlib.import_module("guidedmatch.cli").main  # the fuzzer's target; at call time, no import cycle
 
     out, err = io.StringIO(), io.StringIO()
     t0 = time.perf_counter()
@@ -427,7 +429,9 @@ def fuzz_arguments(scratch: Path, examples: int, seed: int = 0) -> Row:
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
-    from ..cli import build_parser
+    import importlib
+
+    build_parser = importlib.import_module("guidedmatch.cli").build_parser  # the CLI under test, at call time
 
     scratch.mkdir(parents=True, exist_ok=True)
     env = fuzz_env(scratch)
