@@ -322,7 +322,8 @@ def input_cases() -> list[Case]:
         Case("pairs", "binary pairs file", _pairs_case(lambda n: b"\xff\xfe\x00\x01" * 50)),
     ]
     for command in ("match", "sfm"):
-        for kind, accept in (("zero", None), ("text", None), ("truncated", None), ("1x1", None),
+        skip = None if command == "match" else SKIPPED   # sfm documents: a damaged image is skipped and listed
+        for kind, accept in (("zero", skip), ("text", skip), ("truncated", skip), ("1x1", skip),
                              ("16bit", r"" if command == "match" else r"registered"),
                              ("cmyk", r"" if command == "match" else r"registered"),
                              ("exif", r"" if command == "match" else r"registered"),
@@ -337,6 +338,21 @@ def input_cases() -> list[Case]:
     return cases
 
 
+#: ``Case.accept`` of a damaged image given to sfm: exit 0 is right when the image is skipped and listed by name
+#: in the project's report.json (``skipped_images``) -- and it must not be among the registered images
+SKIPPED = "<skipped and listed>"
+
+
+def _skipped_and_listed(argv, named: Path) -> bool:
+    import json
+
+    try:
+        report = json.loads((Path(argv[2]) / "report.json").read_text())
+    except (OSError, ValueError, IndexError):
+        return False
+    return any(Path(str(s.get("name", ""))).name == named.name for s in report.get("skipped_images", []))
+
+
 def check_case(case: Case, run: Run, named: Path) -> list[str]:
     """What is wrong with the outcome of one case (empty: as expected)."""
     import re
@@ -348,6 +364,9 @@ def check_case(case: Case, run: Run, named: Path) -> list[str]:
         msg = run.stderr
         if str(named) not in msg and named.name not in msg:
             problems.append(f"the message does not name {named.name}")
+    elif run.rc == 0 and case.accept == SKIPPED:
+        if not _skipped_and_listed(run.argv, named):
+            problems.append(f"exit 0 and {named.name} is not in report.json's skipped_images (used?)")
     elif run.rc == 0 and case.accept is not None:
         if case.accept and not re.search(case.accept, run.stdout + run.stderr, re.I):
             problems.append(f"exit 0 without saying how it was handled (/{case.accept}/)")
