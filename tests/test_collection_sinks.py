@@ -610,3 +610,79 @@ def test_cap_inliers_bad_input_and_lock(db_copy):
     sink.close()
     with pytest.raises(OutputError):
         sink.cap_inliers(10)
+
+
+# ---------------------------------------------------------------------------------------------- full disk
+class _Statvfs:
+    """A filesystem with ``free`` bytes available (os.statvfs's fields the sinks read)."""
+
+    def __init__(self, free):
+        self.f_frsize, self.f_bavail = 4096, free // 4096
+
+
+def test_colmap_sink_refuses_a_full_disk_before_the_transaction(db_copy, base, monkeypatch):
+    """pycolmap commits a transaction in a C++ destructor: SQLite's "disk is full" there aborts the process
+    (SIGABRT, found by the fault bench). The sink checks the space before each pair: OutputError naming the
+    database; the pairs stored before stay complete and resumable. Opening it needs no space (a rerun with
+    nothing left to write works on a full disk)."""
+    import guidedmatch.collection.sinks as sinks
+
+    _, mv, _, r, g = base
+    real = os.statvfs
+    monkeypatch.setattr(sinks.os, "statvfs", lambda p: _Statvfs(sinks.SPACE_MARGIN // 2))
+    with ColmapSink(db_copy) as sink:
+        with pytest.raises(OutputError, match=r"cannot write the COLMAP database .*db\.db: disk full: 4\.0 MB free"):
+            sink.write(mv.names[0], mv.names[1], r.pairs, None, g)
+        assert sink.done_pairs() == set()
+    monkeypatch.setattr(sinks.os, "statvfs", real)
+    with ColmapSink(db_copy) as sink:
+        sink.write(mv.names[0], mv.names[1], r.pairs, None, g)
+        monkeypatch.setattr(sinks.os, "statvfs", lambda p: _Statvfs(sinks.SPACE_MARGIN + 2 * r.pairs.nbytes))
+        with pytest.raises(OutputError, match="disk full.*finished pairs are kept"):
+            sink.write(mv.names[0], mv.names[2], r.pairs, None, g)
+        monkeypatch.setattr(sinks.os, "statvfs", real)
+        assert sink.done_pairs() == {frozenset(mv.names[:2])}
+
+
+def test_colmap_sink_refuses_past_the_file_size_limit(db_copy):
+    """``ulimit -f`` (RLIMIT_FSIZE): a write that could take the database past it is refused by name."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    sink = ColmapSink(db_copy)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (db_copy.stat().st_size + (1 << 20), hard))
+    try:
+        with pytest.raises(OutputError, match=r"db\.db.*file size limit: db\.db .* may not grow past"):
+            sink.check_space()
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        sink.close()
+
+
+def test_h5_sink_full_disk_is_an_output_error_and_resumes(tmp_path):
+    """A segment that does not fit (here: the file size limit, EFBIG -- a full disk is ENOSPC, the same path) is
+    an OutputError naming matches.h5; HDF5 never writes to the disk itself (it crashed the process when it did),
+    no temp file is left, earlier segments stay and count as done; the merge is refused before it starts."""
+    import resource
+
+    rng = np.random.default_rng(3)
+    nf = {f"{i}.png": 20_000 for i in range(5)}
+    names = list(nf)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    sink = H5MatchesSink(tmp_path / "m.h5", nf, flush_every=1)
+    sink.write(names[0], names[1], *_random_matches(rng, 20_000, 20_000, 50))   # one segment, ~160 KB
+    resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, hard))
+    try:
+        with pytest.raises(OutputError, match=r"cannot write the matches file .*m\.h5 \(a segment"):
+            sink.write(names[1], names[2], *_random_matches(rng, 20_000, 20_000, 50))
+        assert not list((tmp_path / "m.h5.parts").glob("*.tmp"))
+        sink._buffer.clear()
+        with pytest.raises(OutputError, match=r"m\.h5: file size limit.*wait in"):
+            sink.close()
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert not (tmp_path / "m.h5").exists() and len(list((tmp_path / "m.h5.parts").glob("*.h5"))) == 1
+    with H5MatchesSink(tmp_path / "m.h5", nf) as again:
+        assert again.done_pairs() == {frozenset(names[:2])}
+    with h5py.File(tmp_path / "m.h5") as fh:
+        assert names_to_pair(names[0], names[1]) in fh

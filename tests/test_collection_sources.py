@@ -485,3 +485,124 @@ def test_a_dead_worker_process_is_a_clear_error(tmp_path):
                           env={"PYTHONPATH": src, "PATH": "/usr/bin:/bin"})
     assert "CAUGHT an extraction worker process died" in proc.stdout, proc.stdout + proc.stderr
     assert "__main__" in proc.stdout
+
+
+def _sift_db(path, n_images=2, n=10):
+    sift = [pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
+                                        np.random.default_rng(k).integers(0, 255, (n, 128), dtype=np.uint8))
+            for k in range(n_images)]
+    _db_with(path, sift)
+    return path
+
+
+def _sql(path, *statements):
+    import sqlite3
+
+    con = sqlite3.connect(path)
+    for s in statements:
+        con.execute(s)
+    con.commit()
+    con.close()
+
+
+@pytest.mark.parametrize("table", ["descriptors", "keypoints"])
+def test_colmap_blob_of_the_wrong_size_names_database_and_image(tmp_path, table):
+    """A blob shorter than rows x cols (pycolmap's ValueError) is a DatabaseError naming the database and the
+    image -- from validate (before matching) and from load (a worker) alike; the first image's descriptors are
+    read when the source opens."""
+    path = _sift_db(tmp_path / "db.db")
+    _sql(path, f"UPDATE {table} SET data = substr(data, 1, length(data) - 3) WHERE image_id = 2")
+    src = ColmapSource(path)
+    for call in (src.validate, lambda: src.load("im1.png")):
+        with pytest.raises(DatabaseError, match=rf"db\.db: the {table} of image 'im1.png' cannot be read"):
+            call()
+    assert len(src.load("im0.png")) == 10
+    _sql(path, "UPDATE descriptors SET data = substr(data, 1, 100) WHERE image_id = 1")
+    with pytest.raises(DatabaseError, match="descriptors of image 'im0.png' cannot be read"):
+        ColmapSource(path)
+
+
+def test_colmap_nan_keypoints_refused_naming_the_image(tmp_path):
+    import sqlite3
+
+    path = _sift_db(tmp_path / "db.db")
+    con = sqlite3.connect(path)
+    r, c, d = con.execute("SELECT rows, cols, data FROM keypoints WHERE image_id = 2").fetchone()
+    kp = np.frombuffer(d, np.float32).copy().reshape(r, c)
+    kp[4, 1] = np.nan
+    con.execute("UPDATE keypoints SET data = ? WHERE image_id = 2", (kp.tobytes(),))
+    con.commit()
+    con.close()
+    src = ColmapSource(path)
+    src.validate()  # not a validate() error: that image's pairs fail in load(), the others are matched
+    with pytest.raises(InputError, match=r"db\.db: image 'im1.png' has 1 of 10 keypoints with non-finite "
+                                         r"\(NaN / inf\) .*keypoint 4"):
+        src.load("im1.png")
+    assert len(src.load("im0.png")) == 10
+
+
+def test_colmap_damaged_or_foreign_sqlite_files(tmp_path):
+    """Checked with plain SQLite before COLMAP's schema set-up: a truncated file says so at once (no 2 s of
+    retries as if it were busy), another program's database is refused untouched, a COLMAP table without COLMAP's
+    columns is named."""
+    import sqlite3
+    import time
+
+    path = _sift_db(tmp_path / "db.db")
+    data = path.read_bytes()
+    (tmp_path / "cut.db").write_bytes(data[: len(data) // 2])
+    t0 = time.monotonic()
+    with pytest.raises(DatabaseError, match="cut.db is damaged or truncated"):
+        ColmapSource(tmp_path / "cut.db")
+    assert time.monotonic() - t0 < 1.5
+    other = tmp_path / "other.db"
+    _sql(other, "CREATE TABLE photos (id INTEGER, path TEXT)")
+    with pytest.raises(DatabaseError, match="not a COLMAP database .*'photos'"):
+        ColmapSource(other)
+    con = sqlite3.connect(other)
+    assert [r[0] for r in con.execute("SELECT name FROM sqlite_master")] == ["photos"]  # nothing added
+    con.close()
+    _sql(path, "DROP TABLE keypoints", "CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, x REAL)")
+    with pytest.raises(DatabaseError, match="table 'keypoints' lacks the column.*data"):
+        ColmapSource(path)
+
+
+def _h5(path, edit=None):
+    with h5py.File(path, "w") as fh:
+        for name in ("a.jpg", "b.jpg"):
+            g = fh.create_group(name)
+            g["keypoints"] = np.random.default_rng(0).uniform(0, 9, (4, 2)).astype(np.float32)
+            g["descriptors"] = np.ones((8, 4), np.float16)
+            g["image_size"] = np.array([10, 10])
+        if edit:
+            edit(fh["b.jpg"])
+    return path
+
+
+def _replace(name, data):
+    def go(g):
+        del g[name]
+        g[name] = data
+    return go
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda g: g.__delitem__("keypoints"), r"1 image group\(s\) have no 'keypoints' dataset \('b.jpg'\)"),
+    (_replace("keypoints", np.zeros((4, 2), np.complex64)), "b.jpg: keypoints of type complex64"),
+    (_replace("descriptors", np.array([[b"abc"] * 4] * 8)), "b.jpg: descriptors of type"),
+])
+def test_h5_missing_dataset_or_wrong_dtype_named(tmp_path, edit, message):
+    path = _h5(tmp_path / "f.h5", edit)
+    with pytest.raises(DatabaseError, match=r"f\.h5: .*" + message):
+        H5Source(path)
+
+
+def test_h5_nan_keypoints_refused_naming_the_image(tmp_path):
+    def nan(g):
+        kp = np.asarray(g["keypoints"]).copy()
+        kp[2, 0] = np.inf
+        g["keypoints"][...] = kp
+    src = H5Source(_h5(tmp_path / "f.h5", nan))
+    with pytest.raises(InputError, match=r"f\.h5: image 'b.jpg' has 1 of 4 keypoints with non-finite"):
+        src.load("b.jpg")
+    assert len(src.load("a.jpg")) == 4

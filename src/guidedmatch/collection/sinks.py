@@ -16,6 +16,7 @@ COLMAP conventions handled here
 """
 from __future__ import annotations
 
+import io
 import os
 import tempfile
 import time
@@ -135,6 +136,38 @@ def _check_pairs(name1: str, name2: str, pairs, scores, n1: int | None, n2: int 
         if len(s) != len(p):
             raise InputError(f"{len(s)} scores for {len(p)} matches ({name1} / {name2})")
     return p, s
+
+
+#: free space every COLMAP database transaction asks for beyond twice its own bytes: SQLite writes a committed
+#: transaction's pages to the WAL and, at an automatic checkpoint, copies up to ~1000 WAL pages (~4 MB) into the
+#: database file -- both need room on the disk
+SPACE_MARGIN = 8 << 20
+
+
+def _space_problem(paths, folder: Path, need: int) -> str | None:
+    """Why writing ``need`` more bytes into ``paths`` (files in ``folder``) would fail, or None: too little free
+    space on the filesystem, or a per-process file size limit (``RLIMIT_FSIZE``) below a file's size plus it."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return None
+    free = st.f_bavail * st.f_frsize
+    if free < need:
+        return (f"disk full: {free / 2**20:.1f} MB free on the filesystem of {folder}, a write needs up to "
+                f"{need / 2**20:.1f} MB; free some space and rerun (finished pairs are kept)")
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    except (ImportError, OSError, ValueError):
+        return None
+    if soft != resource.RLIM_INFINITY:
+        for f in paths:
+            size = f.stat().st_size if f.exists() else 0
+            if size + need > soft:
+                return (f"file size limit: {f.name} ({size / 2**20:.1f} MB) may not grow past {soft / 2**20:.1f} MB "
+                        "in this process (ulimit -f); raise the limit and rerun (finished pairs are kept)")
+    return None
 
 
 class MatchSink:
@@ -302,6 +335,7 @@ class ColmapSink(MatchSink):
         m = np.ascontiguousarray(p, dtype=np.uint32).reshape(-1, 2)
         tvg = self._two_view(p, geometry, swap) if self.geometry == "ours" else None
         db = self._db
+        self.check_space(2 * m.nbytes)
         with pycolmap.DatabaseTransaction(db):
             # pycolmap's transaction commits on exit even after an exception: undo by hand so a pair is stored
             # completely or not at all (a crash / kill -9 leaves the open transaction to SQLite's rollback)
@@ -315,6 +349,16 @@ class ColmapSink(MatchSink):
                         pass
                 raise
         self.written += 1
+
+    def check_space(self, nbytes: int = 0) -> None:
+        """OutputError naming the database when a transaction of ``nbytes`` might not fit on its disk (or under
+        the process's file size limit). Checked before each transaction: pycolmap commits a transaction in a C++
+        destructor, where SQLite's "database or disk is full" aborts the process instead of raising."""
+        files = [self.path, self.path.with_name(self.path.name + "-wal")]
+        problem = _space_problem(files, self.path.parent if str(self.path.parent) else Path("."),
+                                 2 * int(nbytes) + SPACE_MARGIN)
+        if problem:
+            raise OutputError(f"cannot write the COLMAP database {self.path}: {problem}")
 
     @staticmethod
     def _write_rows(db, i1: int, i2: int, m: np.ndarray, tvg) -> None:
@@ -343,6 +387,7 @@ class ColmapSink(MatchSink):
             opts.mergedict(options)
             options = opts
         options = options or pycolmap.TwoViewGeometryOptions()
+        self.check_space()
         db = self._db
         if pairs is None:
             todo = []
@@ -431,6 +476,7 @@ class ColmapSink(MatchSink):
                 dist = np.linalg.norm(a.astype(np.float32) - b.astype(np.float32), axis=1)
             keep = np.sort(spread_matches(kp1[m[:, 0]], size1, dist, max_inliers, grid))
             g.inlier_matches = np.ascontiguousarray(m[keep], dtype=np.uint32)
+            self.check_space(g.inlier_matches.nbytes)
             with pycolmap.DatabaseTransaction(db):
                 db.update_two_view_geometry(i1, i2, g)
             report["pairs_capped"] += 1
@@ -622,18 +668,31 @@ class H5MatchesSink(MatchSink):
 
         if not self._buffer:
             return
-        fd, tmp = tempfile.mkstemp(prefix=f"seg-{os.getpid()}-", suffix=".tmp", dir=self.parts)
-        os.close(fd)
+        # built in memory, then written with plain file I/O: HDF5's own writes hitting a full disk (or the file size
+        # limit) end in errors raised from finalizers and can crash the process; a plain write is one OSError
+        mem = io.BytesIO()
+        with h5py.File(mem, "w") as fh:
+            for key, (m0, s0) in self._buffer.items():
+                grp = fh.create_group(key)
+                grp.create_dataset("matches0", data=m0)
+                grp.create_dataset("matching_scores0", data=s0)
+        data = mem.getbuffer()
+        tmp = None
         try:
-            with h5py.File(tmp, "w") as fh:
-                for key, (m0, s0) in self._buffer.items():
-                    grp = fh.create_group(key)
-                    grp.create_dataset("matches0", data=m0)
-                    grp.create_dataset("matching_scores0", data=s0)
+            fd, tmp = tempfile.mkstemp(prefix=f"seg-{os.getpid()}-", suffix=".tmp", dir=self.parts)
+            with os.fdopen(fd, "wb") as out:
+                out.write(data)
+                out.flush()
+                os.fsync(out.fileno())
             final = self.parts / f"seg-{time.time_ns():020d}-{os.getpid()}.h5"
             os.replace(tmp, final)
+        except OSError as exc:
+            if tmp is not None and os.path.exists(tmp):
+                os.unlink(tmp)
+            raise OutputError(f"cannot write the matches file {self.path} (a segment in {self.parts}): "
+                              f"{exc.strerror or exc}; free some space and rerun (finished pairs are kept)") from None
         except BaseException:
-            if os.path.exists(tmp):
+            if tmp is not None and os.path.exists(tmp):
                 os.unlink(tmp)
             raise
         self._done |= set(self._buffer)
@@ -649,6 +708,13 @@ class H5MatchesSink(MatchSink):
         segments = self._segment_files()
         if not segments and self.path.exists() and not self.overwrite:
             return
+        # the merged copy needs about the space of its sources: refused before HDF5 writes a byte (see flush)
+        need = sum(f.stat().st_size for f in segments) + (self.path.stat().st_size if self.path.exists() else 0)
+        problem = _space_problem([self.path], self.path.parent if str(self.path.parent) else Path("."),
+                                 int(1.25 * need) + (1 << 20))
+        if problem:
+            raise OutputError(f"cannot write the matches file {self.path}: {problem} (the matched pairs wait in "
+                              f"{self.parts})")
         fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp.h5", dir=self.path.parent)
         os.close(fd)
         try:

@@ -42,6 +42,7 @@ __all__ = ["FeatureSource", "ColmapSource", "H5Source", "open_source", "images_t
 COLMAP_PIXEL_OFFSET = 0.5
 _BINARY_BY_BYTES = {32: "orb", 61: "akaze", 64: "brisk"}
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+_H5_IMAGE_DATASETS = ("descriptors", "image_size", "scores")  # datasets of an hloc image group besides keypoints
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 
@@ -154,6 +155,49 @@ def _writer_active(path: Path) -> bool:
         os.close(fd)
 
 
+#: columns every COLMAP database version has, per table (newer versions add more)
+_COLMAP_COLUMNS = {"cameras": {"camera_id", "model", "width", "height", "params"},
+                   "images": {"image_id", "name", "camera_id"},
+                   "keypoints": {"image_id", "rows", "cols", "data"},
+                   "descriptors": {"image_id", "rows", "cols", "data"},
+                   "matches": {"pair_id", "rows", "cols", "data"},
+                   "two_view_geometries": {"pair_id", "rows", "cols", "data", "config"}}
+
+
+def _sqlite_problem(path: Path) -> str | None:
+    """Why the SQLite file ``path`` is not a usable COLMAP database, read with plain SQLite before COLMAP's schema
+    set-up touches it: damaged (truncated, malformed), another program's database (no COLMAP table: COLMAP would
+    add its tables to it), or a COLMAP table without COLMAP's columns. None when it looks fine or is busy (a
+    writer holds it: the caller retries)."""
+    import sqlite3
+
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=0.5)
+    except sqlite3.Error:
+        return None
+    try:
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if tables and not tables & {"cameras", "images", "keypoints"}:
+            return (f"is an SQLite database but not a COLMAP database (its tables: {_examples(sorted(tables))}); "
+                    "nothing was changed")
+        for table, need in _COLMAP_COLUMNS.items():
+            if table in tables:
+                have = {r[1] for r in con.execute(f"PRAGMA table_info({table})")}
+                if not need <= have:
+                    return (f"is not a COLMAP database of a known layout: table {table!r} lacks the column(s) "
+                            f"{', '.join(sorted(need - have))}")
+        if "images" in tables:
+            con.execute("SELECT count(*) FROM images").fetchone()
+    except sqlite3.DatabaseError as exc:
+        msg = str(exc)
+        if not any(w in msg for w in ("malformed", "not a database", "corrupt")):
+            return None  # locked, busy, a WAL file this read-only probe cannot use, ...: pycolmap's open decides
+        return f"is damaged or truncated (SQLite: {msg}); restore it or extract the features again"
+    finally:
+        con.close()
+    return None
+
+
 def _open_colmap(path: Path, busy_timeout: float = 30.0):
     """``pycolmap.Database`` of an existing COLMAP database (DatabaseError when missing or not a database).
 
@@ -171,18 +215,33 @@ def _open_colmap(path: Path, busy_timeout: float = 30.0):
         head = fh.read(16)
     if head != _SQLITE_MAGIC:
         raise DatabaseError(f"{path} is not a COLMAP database (not an SQLite file)")
+    problem = _sqlite_problem(path)
+    if problem:
+        raise DatabaseError(f"{path} {problem}")
     start = time.monotonic()
     delay = 0.02
     while True:
         try:
             return pycolmap.Database.open(str(path))
         except Exception as exc:  # pycolmap raises RuntimeError / ValueError with SQLite's message
+            problem = _sqlite_problem(path)
+            if problem:
+                raise DatabaseError(f"{path} {problem}") from None
             waited = time.monotonic() - start
             if waited > (busy_timeout if _writer_active(path) else 2.0):
                 raise DatabaseError(f"cannot open COLMAP database {path} (tried for {waited:.1f} s; another "
                                     f"process may be writing it): {exc}") from None
             time.sleep(delay)
             delay = min(0.5, delay * 2)
+
+
+def _check_finite(xy: np.ndarray, path: Path, name: str) -> None:
+    """InputError naming the file and the image when keypoint coordinates are NaN / inf."""
+    bad = ~np.isfinite(xy).all(axis=1) if len(xy) else np.zeros(0, bool)
+    if bad.any():
+        raise InputError(f"{path}: image {name!r} has {int(bad.sum())} of {len(xy)} keypoints with non-finite "
+                         f"(NaN / inf) coordinates (first: keypoint {int(np.flatnonzero(bad)[0])}); re-extract its "
+                         "features")
 
 
 def _descriptor_kind(ftype, nbytes: int) -> str:
@@ -259,7 +318,11 @@ class ColmapSource(FeatureSource):
             if mismatch:
                 raise DatabaseError(f"{self.path}: keypoint and descriptor counts differ for {_examples(mismatch)}")
             self._ref = next((n for n in self._names if self._counts[n] > 0), self._names[0])
-            self._desc = self._read_descriptor_meta(db, self._ref)
+            try:
+                self._desc = self._read_descriptor_meta(db, self._ref)
+            except (ValueError, RuntimeError) as exc:  # a blob that does not hold its rows x cols
+                raise DatabaseError(f"{self.path}: the descriptors of image {self._ref!r} cannot be read (damaged "
+                                    f"database: {str(exc).strip()})") from None
         finally:
             db.close()
 
@@ -309,10 +372,9 @@ class ColmapSource(FeatureSource):
         (degrees of COLMAP's orientation); responses are not stored by COLMAP (None).
         """
         self._check_name(name)
-        iid = self._ids[name]
-        db = self._db()
-        kp, desc = self._retry(lambda: (db.read_keypoints(iid), db.read_descriptors(iid)))
+        kp, desc = self._read(name)
         kp = np.asarray(kp, dtype=np.float64).reshape(len(kp), -1) if len(kp) else np.zeros((0, 2))
+        _check_finite(kp[:, :2], self.path, name)
         data = np.asarray(desc.data)
         nbytes = int(data.shape[1]) if data.ndim == 2 and len(data) else self._desc[1]
         kind, rows = _descriptor_rows(desc, nbytes)
@@ -341,16 +403,36 @@ class ColmapSource(FeatureSource):
             descriptors = descriptors.reshape(0, nbytes or 128)
         return Features(xy, descriptors, self._sizes[name], fkind, scales=scales, angles=angles)
 
-    def validate(self, names=None) -> None:
-        """Read every image's descriptor blob (one at a time) and raise :class:`InputError` on mixed types.
-
-        Cost: one pass over the descriptor table (~1 MB per 8k SIFT features).
-        """
+    def _read(self, name: str):
+        """``(keypoints, FeatureDescriptors)`` of ``name``; a blob that does not hold its rows x cols (a damaged
+        database) is a DatabaseError naming the database and the image."""
+        iid = self._ids[name]
         db = self._db()
+        what = "keypoints"
+        try:
+            kp = self._retry(lambda: db.read_keypoints(iid))
+            what = "descriptors"
+            desc = self._retry(lambda: db.read_descriptors(iid))
+        except (ValueError, RuntimeError) as exc:  # pycolmap's check of a blob's size against rows x cols
+            raise DatabaseError(f"{self.path}: the {what} of image {name!r} cannot be read (damaged database: "
+                                f"{str(exc).strip()})") from None
+        return kp, desc
+
+    def validate(self, names=None) -> None:
+        """Read every image's keypoints and descriptors (one image at a time): :class:`DatabaseError` for a blob
+        whose size does not match its rows x cols, :class:`InputError` for mixed descriptor types -- each naming the
+        database and the image. (NaN / inf keypoint coordinates are refused by :meth:`load`: the pairs of that
+        image fail and are reported, the others are matched.)
+
+        Cost: one pass over the keypoint and descriptor tables (~1 MB per 8k SIFT features).
+        """
         bad = []
         for name in (self._names if names is None else names):
             self._check_name(name)
-            meta = self._retry(lambda n=name: self._read_descriptor_meta(db, n))
+            _, d = self._read(name)
+            data = np.asarray(d.data)
+            nbytes = int(data.shape[1]) if data.ndim == 2 else 0
+            meta = (_descriptor_kind(d.type, nbytes), nbytes)
             if self._counts[name] and meta != self._desc:
                 bad.append(f"{name} ({meta[0]}, {meta[1]} bytes)")
         if bad:
@@ -378,15 +460,28 @@ class H5Source(FeatureSource):
             raise DatabaseError(f"{self.path} is not an HDF5 features file: {exc}") from None
         try:
             groups: list[str] = []
-            fh.visititems(lambda n, obj: groups.append(n) if isinstance(obj, h5py.Group) and "keypoints" in obj
-                          else None)
+            no_kp: list[str] = []   # an image group (it has an image's datasets) that lost its keypoints
+
+            def visit(n, obj) -> None:
+                if isinstance(obj, h5py.Group):
+                    if "keypoints" in obj:
+                        groups.append(n)
+                    elif any(k in obj and isinstance(obj[k], h5py.Dataset) for k in _H5_IMAGE_DATASETS):
+                        no_kp.append(n)
+            fh.visititems(visit)
             if not groups:
                 raise DatabaseError(f"{self.path}: no image groups with 'keypoints' (not an hloc features.h5?)")
+            if no_kp:
+                raise DatabaseError(f"{self.path}: {len(no_kp)} image group(s) have no 'keypoints' dataset "
+                                    f"({_examples(no_kp)})")
             no_desc, bad = [], []
             dims = {}
             for g in groups:
                 grp = fh[g]
                 kp = grp["keypoints"]
+                if not isinstance(kp, h5py.Dataset) or kp.dtype.kind not in "fiu":
+                    bad.append(f"{g}: keypoints of type {getattr(kp, 'dtype', 'group')} (expected float)")
+                    continue
                 if kp.ndim != 2 or kp.shape[1] != 2:
                     bad.append(f"{g}: keypoints shape {kp.shape}")
                     continue
@@ -394,6 +489,10 @@ class H5Source(FeatureSource):
                     no_desc.append(g)
                     continue
                 d = grp["descriptors"]
+                if not isinstance(d, h5py.Dataset) or d.dtype.kind not in "fiu":
+                    bad.append(f"{g}: descriptors of type {getattr(d, 'dtype', 'group')} (expected float16 / "
+                               "float32, or uint8)")
+                    continue
                 if d.ndim != 2 or d.shape[1] != kp.shape[0]:
                     bad.append(f"{g}: descriptors shape {d.shape} for {kp.shape[0]} keypoints (hloc stores D x N)")
                     continue
@@ -425,11 +524,23 @@ class H5Source(FeatureSource):
             self._handle = h5py.File(self.path, "r")
         return self._handle
 
+    def _keypoints(self, name: str) -> np.ndarray:
+        try:
+            kp = np.asarray(self._file()[name]["keypoints"], dtype=np.float64)
+        except (OSError, ValueError, TypeError) as exc:
+            raise DatabaseError(f"{self.path}: the keypoints of image {name!r} cannot be read: {exc}") from None
+        _check_finite(kp, self.path, name)
+        return kp
+
+
     def load(self, name: str) -> Features:
         self._check_name(name)
         grp = self._file()[name]
-        kp = np.asarray(grp["keypoints"], dtype=np.float64)
-        d = np.asarray(grp["descriptors"])
+        kp = self._keypoints(name)
+        try:
+            d = np.asarray(grp["descriptors"])
+        except (OSError, ValueError, TypeError) as exc:
+            raise DatabaseError(f"{self.path}: the descriptors of image {name!r} cannot be read: {exc}") from None
         desc = d.T.astype(np.uint8 if d.dtype == np.uint8 else np.float32)
         scores = np.asarray(grp["scores"], dtype=np.float32) if "scores" in grp else None
         if scores is not None and scores.shape != (len(kp),):
