@@ -233,3 +233,10 @@ def test_hloc_matches_file_that_cannot_be_written_is_exit_2(tmp_path, capsys, ou
     assert main(["hloc", str(tmp_path / "f.h5"), "exhaustive", out, "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("guidedmatch: error:") and err.count("\n") == 1 and out.rsplit("/", 1)[0] in err, err
+
+
+@pytest.mark.parametrize("argv", [["colmap", ""], ["hloc", "", "exhaustive", ""], ["hloc", "f.h5", "exhaustive", "."]])
+def test_an_empty_output_or_features_path_is_exit_2_not_an_internal_error(argv, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("guidedmatch: error: ") and "path is empty" in err and "internal error" not in err

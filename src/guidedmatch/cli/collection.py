@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..config import MODES
-from ..errors import ConfigError, GuidedMatchError
+from ..errors import ConfigError, GuidedMatchError, InputError
 from ..features import writable_folder
 from .common import nonneg_int, parse_kv, positive_int
 
@@ -143,6 +143,10 @@ def _setup(args, output: Path, open_source, spec: str):
     """Everything checked before matching: options -> config, the source, the pair list, descriptor types."""
     from ..collection.pairs import pairs_from_spec
 
+    for path, what in ((output, "the output"), *([(Path(args.features), "--features")] if getattr(args, "features", None)
+                                                 is not None else [])):
+        if str(path) in ("", ".") or not path.name:
+            raise InputError(f"{what} path is empty or a folder ({str(path)!r}): give a file path")
     cfg = _collection_config(args, output.with_name(output.name + ".guidedmatch.jsonl"))
     if args.timeline is not None:
         if Path(args.timeline).suffix.lower() != ".png":

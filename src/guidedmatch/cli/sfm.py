@@ -103,7 +103,7 @@ def cmd_map(args) -> int:
     if not rec["models"] or rec["models"][0]["registered"] < 2:
         print("guidedmatch: no reconstruction: the mapper could not register 2 images (too few verified pairs)",
               file=sys.stderr)
-        return 1
+        return 2  # the photos give no model: an answer about the input (exit 1 is reserved for bugs)
     print(f"next       : colmap gui --database_path {args.database} --image_path {args.image_dir} --import_path "
           f"{out / '0'}   (or pycolmap.Reconstruction('{out / '0'}'))")
     return 0
@@ -120,7 +120,7 @@ def cmd_sfm(args) -> int:
     if report["registered"] < 2:
         print(f"guidedmatch: no reconstruction: the mapper registered {report['registered']} of {report['num_images']} "
               f"images (too few verified pairs; see {Path(args.out_dir) / 'report.md'})", file=sys.stderr)
-        return 1
+        return 2  # the photos give no model: an answer about the input (exit 1 is reserved for bugs)
     print(f"next       : colmap gui --database_path {report['database']} --image_path {args.image_dir} "
           f"--import_path {report['sparse']}   (or pycolmap.Reconstruction('{report['sparse']}'))")
     return 0
