@@ -56,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     freeze_gc_at_exit()  # a cheap interpreter shutdown (guidedmatch._runtime)
     mark_own_process()   # Numba's set-up may skip its SciPy BLAS probe (guidedmatch._runtime)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = bench.delegated_bench(argv) or parser.parse_args(argv)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2

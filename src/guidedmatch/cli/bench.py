@@ -7,7 +7,35 @@ from ..errors import ConfigError, InputError
 from ..features import writable_folder
 from .common import positive_int
 
-__all__ = ["add_commands", "cmd_bench", "cmd_experiment"]
+__all__ = ["add_commands", "cmd_bench", "cmd_experiment", "DELEGATED", "delegated_bench"]
+
+#: benchmarks with options of their own: ``guidedmatch bench NAME ...`` hands the rest of the command line to the
+#: module's ``add_arguments(parser)`` / ``main(args)`` (the same as ``python -m MODULE ...``)
+DELEGATED = {
+    "faults": ("guidedmatch.evaluation.bench_faults", "kill -9, disk full, two writers, corrupt inputs, fuzzed "
+               "arguments: what survives, written to faults.md / faults.json"),
+}
+
+
+def delegated_bench(argv: list[str]):
+    """``(namespace, module)`` when ``argv`` is ``[--debug] bench NAME ...`` with NAME in :data:`DELEGATED`, else None."""
+    import argparse
+    import importlib
+
+    rest = [a for a in argv if a != "--debug"]
+    if len(rest) < 2 or rest[0] != "bench" or rest[1] not in DELEGATED:
+        return None
+    module = importlib.import_module(DELEGATED[rest[1]][0])
+    if hasattr(module, "build_parser"):  # the module's own command line (python -m MODULE), under our name
+        parser = module.build_parser()
+        parser.prog = f"guidedmatch bench {rest[1]}"
+    else:
+        parser = argparse.ArgumentParser(prog=f"guidedmatch bench {rest[1]}", description=DELEGATED[rest[1]][1])
+        module.add_arguments(parser)
+    args = parser.parse_args(rest[2:])
+    args.debug = "--debug" in argv
+    args.func = module.main
+    return args
 
 
 def cmd_experiment(args) -> int:
@@ -65,8 +93,9 @@ def add_commands(sub, parents) -> None:
 
     b = sub.add_parser("bench", parents=parents, help="reproduce the paper's tables side by side with the paper and peers",
                        description="Benchmark harness: Oxford, synthetic, real (Strecha) and the alignment simulation.")
-    b.add_argument("which", choices=(*BENCHMARKS, "collection", "pairs", "sfm"),
-                   help="pairs: every pair of Herz-Jesus-P8 + unrelated pairs vs COLMAP-style IVF, faiss, FLANN; "
+    b.add_argument("which", choices=(*BENCHMARKS, "collection", "pairs", "sfm", *DELEGATED),
+                   help="; ".join(f"{k}: {v[1]} (own options: guidedmatch bench {k} --help)" for k, v in DELEGATED.items())
+                   + "; pairs: every pair of Herz-Jesus-P8 + unrelated pairs vs COLMAP-style IVF, faiss, FLANN; "
                    "sfm: COLMAP's matcher vs guidedmatch inside COLMAP's mapper, GT poses (Herz-Jesus-P8)")
     b.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     b.add_argument("--out", default="reports", help="output folder (default ./reports)")
