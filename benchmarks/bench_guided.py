@@ -1,4 +1,4 @@
-"""Guided matching vs brute force and peers on a real high-resolution pair (issue: matcher performance).
+"""Guided matching vs brute force and peers on a real high-resolution pair.
 
     python benchmarks/bench_guided.py [--pair 0002 0003] [--sizes 5000 10000 20000 40000] [--repeats 3]
 

@@ -5,7 +5,7 @@ Usage::
     /work/venv/bin/python benchmarks/bench_spatial_order.py [--repeats 30] [--seeds 10] [--out PATH]
 
 Prints a table and writes JSON (default ``benchmarks/results/spatial_order.json``) with run metadata.
-Runs single-threaded (thread env vars are pinned to 1 before NumPy/Numba load). Targets (issue #3): fit with
+Runs single-threaded (thread env vars are pinned to 1 before NumPy/Numba load). Targets: fit with
 omega* (K1D) and the gap table <= 10 ms at N = 600, <= 100 ms at N = 2000; lookup of 100k features <= 20 ms.
 """
 from __future__ import annotations

@@ -184,6 +184,14 @@ def test_user_docs_cite_no_issue_or_session_numbers(page):
     assert not hits, "\n".join(hits)
 
 
+def test_the_package_source_cites_no_issue_or_session_numbers():
+    """Code, docstrings and CLI help describe what the code does now, not the tracker's history."""
+    src = ROOT / "src" / "guidedmatch"
+    hits = [f"{p.relative_to(ROOT)}:{i}: {ln.strip()}" for p in sorted(src.rglob("*.py"))
+            for i, ln in enumerate(p.read_text().splitlines(), 1) if _TRACKER.search(ln) or "issue #" in ln.lower()]
+    assert not hits, "\n".join(hits)
+
+
 @pytest.mark.parametrize("page", HISTORY, ids=lambda p: str(p.relative_to(ROOT)))
 def test_measurement_histories_are_organised_by_date_or_topic(page):
     headings = [ln for ln in page.read_text().splitlines() if ln.startswith("#")]
