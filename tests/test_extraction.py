@@ -248,3 +248,17 @@ def test_features_map_in_colmaps_mapper(views, tmp_path):
     assert ev.num_registered == 5
     # tolerance as for the sfm test of the same scene: median <= 0.5 deg, every pair <= 2 deg
     assert ev.median_error_deg <= 0.5 and max(r["error_deg"] for r in ev.per_pair) <= 2.0, ev.summary()
+
+
+def test_image_ids_follow_the_names(views, tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    scene, folder = views
+    db = tmp_path / "o.db"
+    seen = []
+    extract_to_database(folder, db, ExtractionConfig(progress=False, workers=3), on_image=lambda f: seen.append(f.name))
+    d = pycolmap.Database.open(str(db))
+    try:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+    finally:
+        d.close()
+    assert seen == sorted(scene.names) and sorted(ids, key=ids.get) == sorted(scene.names)

@@ -487,7 +487,8 @@ def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.Pa
                         on_image: Callable[[ImageFeatures], None] | None = None) -> dict:
     """SIFT features of the images of ``image_dir`` (or ``image_names``, relative to it) into the COLMAP database
     ``database_path`` (created if missing; images already there with features are reused). See the module
-    docstring for the conventions. ``on_image(features)`` is called (in this thread) after each image is written.
+    docstring for the conventions. Images are written in ``image_names`` order (image ids follow it, as with COLMAP's extractor); ``on_image(features)``
+    is called (in this thread) after each image is written.
 
     Returns ``{"extractor", "config", "time_s", "extracted", "reused", "failed": [{"name", "reason"}],
     "keypoints": {"total", "min", "median", "max"}, "per_image": {name: keypoints}, "read_s", "detect_s"}``
@@ -518,6 +519,8 @@ def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.Pa
         try:
             writer = _Writer(db, conf)
             gen = iter_features(image_dir, todo, conf)
+            ready: dict = {}       # finished out of order, waiting for the images before them
+            nxt = 0
             try:
                 for item in gen:
                     bar.update(1)
@@ -527,12 +530,20 @@ def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.Pa
                             raise exc
                         failed.append({"name": name, "reason": str(exc)})
                         bar.write(f"skipping {name}: {exc}", file=sys.stderr)
-                        continue
-                    writer.write(item)
-                    read_s += item.timing["read_s"]
-                    detect_s += item.timing["detect_s"]
-                    if on_image is not None:
-                        on_image(item)
+                        ready[name] = None
+                    else:
+                        ready[item.name] = item
+                    # written in name order, so image ids follow the names as with COLMAP's extractor
+                    while nxt < len(todo) and todo[nxt] in ready:
+                        f = ready.pop(todo[nxt])
+                        nxt += 1
+                        if f is None:
+                            continue
+                        writer.write(f)
+                        read_s += f.timing["read_s"]
+                        detect_s += f.timing["detect_s"]
+                        if on_image is not None:
+                            on_image(f)
             finally:
                 gen.close()
         finally:
