@@ -152,6 +152,7 @@ def run_option(option: str, image_dir: Path, gt: dict, work: Path) -> dict:
            "mapping_s": mp["wall_s"], "mapping_cpu_s": mp["cpu_s"], "mapper_s": mp["result"]["time_s"],
            "points3D": mp["result"]["points3D"]}
     row["total_s"] = row["extraction_s"] + row["matching_s"] + row["mapping_s"]
+    row["total_cpu_s"] = row["extraction_cpu_s"] + row["matching_cpu_s"] + row["mapping_cpu_s"]
     row.update(_evaluate(d / "sparse", gt))
     return row
 
@@ -206,6 +207,9 @@ def median_rows(rows: list[dict]) -> list[dict]:
     (2.0, [3.0, 1.0, 2.0])
     """
     out = []
+    for r in rows:   # rows written before the CPU total was recorded
+        if "total_cpu_s" not in r and "extraction_cpu_s" in r:
+            r["total_cpu_s"] = r["extraction_cpu_s"] + r["matching_cpu_s"] + r["mapping_cpu_s"]
     for key in dict.fromkeys((r["scene"], r["option"]) for r in rows):
         rs = [r for r in rows if (r["scene"], r["option"]) == key]
         order = sorted(range(len(rs)), key=lambda k: rs[k]["total_s"])
@@ -219,17 +223,19 @@ def median_rows(rows: list[dict]) -> list[dict]:
 
 def options_table(rows: list[dict]) -> str:
     out = ["| scene | extraction | extraction (s) | extraction CPU (s) | features / image | matching (s) | mapping (s) "
-           "| total (s): median (range, runs) | total / colmap | registered | median pose error | AUC@1°/2°/5° |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "| total (s): median (range, runs) | total / colmap | total CPU (s) | CPU / colmap | registered "
+           "| median pose error | AUC@1°/2°/5° |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ref = next((x for x in rows if x["scene"] == r["scene"] and x["option"] == "colmap"), None)
         runs = r.get("runs", [r["total_s"]])
         total = f"{r['total_s']:.1f} ({min(runs):.1f}-{max(runs):.1f}, {len(runs)})"
         ratio = f"{r['total_s'] / ref['total_s']:.2f}" if ref else "–"
+        cpu_ratio = f"{r['total_cpu_s'] / ref['total_cpu_s']:.2f}" if ref else "–"
         name = r["option"] + (" + match_exhaustive (peer)" if r["option"] == "colmap" else " + guidedmatch colmap")
         out.append(f"| {r['scene']} | {name} | {r['extraction_s']:.1f} | {r['extraction_cpu_s']:.1f} | "
                    f"{r['features_median']:.0f} | {r['matching_s']:.1f} | {r['mapping_s']:.1f} | {total} | {ratio} | "
-                   f"{r['registered']} | {_pose(r)} |")
+                   f"{r['total_cpu_s']:.1f} | {cpu_ratio} | {r['registered']} | {_pose(r)} |")
     return "\n".join(out)
 
 
@@ -316,6 +322,8 @@ def add_arguments(parser) -> None:
                         help="mapper study: the extraction options whose last databases are mapped")
     parser.add_argument("--out", default="benchmarks/results/extract", help="folder of extract.json/.md/.png")
     parser.add_argument("--work", default=None, help="databases and models (default: a temp folder, kept)")
+    parser.add_argument("--render", default=None, metavar="JSON",
+                        help="only rewrite extract.md / extract.png in --out from an existing extract.json")
     parser.add_argument("--data", default=None, help="data root (default GUIDEDMATCH_DATA or ../shared/data)")
 
 
@@ -326,6 +334,11 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m guidedmatch.evaluation.bench_extract", description=__doc__.split("\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
+    if args.render:
+        res = json.loads(Path(args.render).read_text())
+        write_report(res, Path(args.out))
+        print(options_table(res["table"]))
+        return 0
     from ..datasets import data_root
     from ..errors import ConfigError, InputError
     from .meta import run_metadata
