@@ -230,7 +230,7 @@ def _octave_layer(octave_field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def colmap_level_selection(octave: np.ndarray, layer: np.ndarray, xy: np.ndarray, scale: np.ndarray,
                            max_features: int, max_orientations: int = 2, selection: str = "levels") -> np.ndarray:
-    """Indices of the rows COLMAP would keep, coarsest first within the kept set's level order.
+    """Sorted indices of the rows COLMAP would keep.
 
     Rows with the same level and position are one detection with several orientations; at most
     ``max_orientations`` of them are kept (the first ones). ``"levels"``: levels (octave, layer) are taken from the
@@ -239,14 +239,11 @@ def colmap_level_selection(octave: np.ndarray, layer: np.ndarray, xy: np.ndarray
 
     >>> octv = np.array([0, 0, 0, 1, 1]); lay = np.array([1, 1, 2, 1, 1])
     >>> xy = np.array([[0, 0], [0, 0], [5, 5], [1, 1], [2, 2]], float)
-    >>> sorted(colmap_level_selection(octv, lay, xy, np.array([1., 1, 2, 3, 4]), 2).tolist())
-    [3, 4]
-    >>> sorted(colmap_level_selection(octv, lay, xy, np.array([1., 1, 2, 3, 4]), 3).tolist())
-    [2, 3, 4]
-    >>> sorted(colmap_level_selection(octv, lay, xy, np.array([1., 1, 2, 3, 4]), 3, max_orientations=1).tolist())
-    [2, 3, 4]
-    >>> sorted(colmap_level_selection(octv, lay, xy, np.array([1., 1, 2, 3, 4]), 4).tolist())
-    [0, 1, 2, 3, 4]
+    >>> sc = np.array([1., 1, 2, 3, 4])
+    >>> [sorted(colmap_level_selection(octv, lay, xy, sc, m).tolist()) for m in (1, 2, 3)]
+    [[3, 4], [2, 3, 4], [0, 1, 2, 3, 4]]
+    >>> sorted(colmap_level_selection(octv, lay, xy, sc, 3, max_orientations=1).tolist())
+    [0, 2, 3, 4]
     """
     n = len(octave)
     if n == 0:
@@ -282,8 +279,10 @@ def rootsift_uint8(desc: np.ndarray) -> np.ndarray:
     """SIFT rows (any positive scale, e.g. OpenCV's 0..255 floats) -> COLMAP's stored RootSIFT rows:
     ``min(255, round(512 sqrt(d / |d|_1)))`` as uint8 (all-zero rows stay zero).
 
-    >>> rootsift_uint8(np.array([[4.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]])).tolist()
-    [[255, 0, 0, 0], [256 // 2, 128, 128, 128]]
+    >>> rootsift_uint8(np.array([[4.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]])).tolist()   # 512 x 0.5 saturates
+    [[255, 0, 0, 0], [255, 255, 255, 255]]
+    >>> rootsift_uint8(np.full((1, 16), 3.0)).tolist() == [[128] * 16]
+    True
     """
     d = np.asarray(desc, np.float32)
     l1 = d.sum(axis=1, keepdims=True)
