@@ -91,7 +91,7 @@ def test_project_of_another_folder_refused(tmp_path):
     assert "belongs to the images in" in line
 
 
-@pytest.mark.parametrize("kw", [dict(detector="ours:surf"), dict(detector="sift"), dict(max_features=0),
+@pytest.mark.parametrize("kw", [dict(detector="ours:surf"), dict(detector="SIFT"), dict(max_features=0),
                                 dict(camera="PINHOLE:1,2,3"), dict(camera="FISHEYE:1,2,3,4"),
                                 dict(camera="PINHOLE:-1,1,1,1"), dict(geometry="both"), dict(mode="fast"),
                                 dict(num_threads=0), dict(peak_threshold=0.002, detector="ours:sift"),
@@ -286,16 +286,16 @@ def test_staged_pipeline_is_sfm_and_features_are_colmaps(rendered, tmp_path):
     scene, folder = rendered
     images = _truncated_copy(folder, tmp_path / "images")
     db = tmp_path / "staged" / "database.db"
-    refused = run_cli("extract", images, db, "--bad-images", "refuse", "--quiet")
+    refused = run_cli("extract", images, db, "--bad-images", "refuse", "--quiet", "--detector", "colmap")
     line = _one_error_line(refused)
     assert "cut.jpg" in line and "truncated or corrupt" in line
     assert not db.exists() or not pycolmap.Database.open(str(db)).num_images()
 
-    proc = run_cli("extract", images, db, "--quiet")
+    proc = run_cli("extract", images, db, "--quiet", "--detector", "colmap")
     assert proc.returncode == 0, proc.stderr
     assert "skipped    : cut.jpg:" in proc.stdout and "truncated or corrupt" in proc.stdout
     assert "next       : guidedmatch colmap" in proc.stdout
-    again = run_cli("extract", images, db, "--quiet")          # resumable: nothing left to extract
+    again = run_cli("extract", images, db, "--quiet", "--detector", "colmap")          # resumable: nothing left to extract
     assert again.returncode == 0 and "extracted  : 0 image(s), 5 already" in again.stdout, again.stdout
 
     # the same features as COLMAP's own extractor reading the files itself
@@ -332,7 +332,7 @@ def test_staged_pipeline_is_sfm_and_features_are_colmaps(rendered, tmp_path):
     assert max(r["error_deg"] for r in ev.per_pair) <= 3.0, ev.summary()
 
     # guidedmatch sfm = the same three stages: the same features and the same verified pairs
-    proc = run_cli("sfm", images, tmp_path / "sfm", "--workers", "0", "--threads", "2", "--quiet")
+    proc = run_cli("sfm", images, tmp_path / "sfm", "--workers", "0", "--threads", "2", "--quiet", "--detector", "colmap")
     assert proc.returncode == 0, proc.stderr
     rep = json.loads((tmp_path / "sfm" / "report.json").read_text())
     assert [s["name"] for s in rep["skipped_images"]] == ["cut.jpg"]

@@ -211,7 +211,7 @@ def read_grey(path: str | os.PathLike) -> tuple[np.ndarray, float | None]:
     except UnidentifiedImageError:
         raise ImageReadError(f"{path}: not an image file Pillow can read") from None
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
-        raise ImageReadError(f"{path}: damaged image ({exc})") from None
+        raise ImageReadError(f"image file is truncated or corrupt: {path} ({exc})") from None
     if grey.shape != (h, w) or grey.size == 0:
         raise ImageReadError(f"{path}: decoded {grey.shape} pixels for a {w}x{h} image")
     return np.ascontiguousarray(grey), exif_focal_px(exif, w, h)
@@ -528,7 +528,8 @@ def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.Pa
                         if conf.on_error == "raise":
                             raise exc
                         failed.append({"name": name, "reason": str(exc)})
-                        bar.write(f"skipping {name}: {exc}", file=sys.stderr)
+                        if conf.progress:  # (otherwise the caller reports the returned "failed")
+                            bar.write(f"skipping {name}: {exc}", file=sys.stderr)
                         ready[name] = None
                     else:
                         ready[item.name] = item

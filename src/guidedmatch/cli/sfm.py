@@ -18,7 +18,8 @@ BAD_IMAGES_HELP = ("what to do with an image that does not decode completely (tr
 
 def add_extraction_options(p: argparse.ArgumentParser) -> None:
     """The options that determine the features (``extract`` and ``sfm``)."""
-    p.add_argument("--detector", default="colmap", help="colmap (pycolmap SIFT, default) or ours:sift|orb|akaze|brisk")
+    p.add_argument("--detector", default="sift", help="sift (default: OpenCV SIFT written as COLMAP's own, ~3.7x less "
+                   "CPU than COLMAP's), colmap (pycolmap's SIFT, as colmap feature_extractor) or ours:sift|orb|akaze|brisk")
     p.add_argument("--max-features", type=positive_int, default=None, help="features per image (default: "
                    "8192 for COLMAP SIFT, unlimited for ours)")
     p.add_argument("--max-image-size", type=positive_int, default=None, help="downscale so the longer side is at "

@@ -96,6 +96,19 @@ def decode_image(path: str | os.PathLike, rgb: bool) -> np.ndarray:
     return np.ascontiguousarray(img[:, :, ::-1]) if rgb else img
 
 
+def decode_check(image_dir: str | os.PathLike, names: list[str]) -> None:
+    """Decode every image of ``names`` completely (grey); raise one ImageReadError naming each damaged one."""
+    bad = []
+    for n in names:
+        try:
+            decode_image(Path(image_dir) / n, rgb=False)
+        except ImageReadError as exc:
+            bad.append(str(exc))
+    if bad:
+        raise ImageReadError(f"{len(bad)} damaged image(s): " + "; ".join(bad[:5])
+                             + ("" if len(bad) <= 5 else f"; ... {len(bad) - 5} more"))
+
+
 _EXTRACTORS: dict = {}  # one pycolmap extractor per process and settings
 
 

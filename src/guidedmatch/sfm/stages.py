@@ -190,11 +190,14 @@ def extract_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
         workers = (os.cpu_count() or 1) if conf.num_threads == -1 else conf.num_threads
         say(conf, f"[1/3] extraction ({conf.detector}): {len(todo)} image(s) to extract, {len(names) - len(todo)} "
                   "reused")
-        spec = ExtractorSpec(detector=conf.detector, max_features=conf.max_features,
-                             max_image_size=conf.max_image_size, peak_threshold=conf.peak_threshold)
-        out = extract_folder(paths.image_dir, paths.database, names, spec, camera_model=conf.camera_model,
-                             camera=parse_camera(conf.camera), single_camera=conf.single_camera, workers=workers,
-                             bad_images=conf.bad_images, progress=conf.progress)
+        if conf.detector == "sift":
+            out = extract_opencv_sift(conf, paths, names, todo, workers)
+        else:
+            spec = ExtractorSpec(detector=conf.detector, max_features=conf.max_features,
+                                 max_image_size=conf.max_image_size, peak_threshold=conf.peak_threshold)
+            out = extract_folder(paths.image_dir, paths.database, names, spec, camera_model=conf.camera_model,
+                                 camera=parse_camera(conf.camera), single_camera=conf.single_camera, workers=workers,
+                                 bad_images=conf.bad_images, progress=conf.progress)
         after = _db_image_names(paths.database)
     skipped = out["skipped"] + [{"name": n, "reason": "no features detected (a blank or too small image?)"}
                                 for n in names if n in after and after[n] == 0]
@@ -208,6 +211,45 @@ def extract_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     for s in skipped:
         say(conf, f"      skipped {s['name']}: {s['reason']}")
     return record
+
+
+def extract_opencv_sift(conf: SfmConfig, paths: SfmPaths, names: list[str], todo: list[str], workers: int) -> dict:
+    """The default extractor: OpenCV SIFT written into the database as COLMAP writes its own SIFT
+    (:func:`guidedmatch.extraction.extract_to_database`: COLMAP's image size, octaves, thresholds, whole-level
+    feature selection, RootSIFT uint8 descriptors, pixel-centre keypoints, cameras from EXIF). ``bad_images="refuse"``
+    decodes every image to extract first and raises before anything is written."""
+    from ..collection.image_folder import decode_check
+    from ..extraction import ExtractionConfig, extract_to_database
+
+    if conf.bad_images == "refuse" and todo:
+        decode_check(paths.image_dir, todo)
+    cam = parse_camera(conf.camera)
+    rep = extract_to_database(paths.image_dir, paths.database, ExtractionConfig(
+        max_features=conf.max_features or 8192, max_image_size=conf.max_image_size or COLMAP_MAX_IMAGE_SIZE,
+        peak_threshold=conf.peak_threshold or 0.02 / 3, camera_model=cam[0] if cam else conf.camera_model,
+        single_camera=conf.single_camera or cam is not None, workers=max(1, workers), on_error="skip",
+        progress=conf.progress), image_names=names)
+    if cam is not None:
+        _set_known_camera(paths.database, cam)
+    return {"extracted": rep["extracted"], "reused": rep["reused"], "skipped": list(rep["failed"]),
+            "workers": max(1, workers)}
+
+
+def _set_known_camera(database: Path, cam: tuple[str, list[float]]) -> None:
+    """Give every camera of ``database`` the known model and parameters (``--camera MODEL:params``), fixed prior."""
+    import pycolmap
+
+    model, params = cam
+    db = pycolmap.Database.open(str(database))
+    try:
+        for c in db.read_all_cameras():
+            if c.model.name != model or list(c.params) != list(params):
+                c.model = pycolmap.CameraModelId.__members__[model]
+                c.params = np.asarray(params, float)
+                c.has_prior_focal_length = True
+                db.update_camera(c)
+    finally:
+        db.close()
 
 
 def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLike, image_names: list[str], *,
