@@ -456,7 +456,9 @@ def add_collection_commands(sub) -> None:
                        epilog=COLMAP_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     c.add_argument("database", help="COLMAP database (.db) with images, keypoints and descriptors")
     c.add_argument("--pairs", default="exhaustive", metavar="SPEC",
-                   help="exhaustive | sequential[:K[:quadratic]] | PAIRS.txt ('name1 name2' lines); default exhaustive")
+                   help="exhaustive | sequential[:K[:quadratic]] | retrieval[:K] (the K most similar images of each "
+                        "image by the collection's own visual words; K default 20) | PAIRS.txt ('name1 name2' lines) "
+                        "| several joined by '+', e.g. sequential:5+retrieval:20; default exhaustive")
     c.add_argument("--geometry", default="ours", choices=("ours", "colmap"),
                    help="ours: our two-view verdict per pair (no separate verification); colmap: raw matches, then "
                         "pycolmap's geometric verification (default ours)")
@@ -465,6 +467,7 @@ def add_collection_commands(sub) -> None:
                         "(default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; "
                         "below 100 COLMAP's mapper cannot pick an initial pair)")
     _common(c, MODES)
+    _expansion_options(c)
     c.set_defaults(func=cmd_colmap)
 
     h = sub.add_parser("hloc", help="match the pairs of an hloc features.h5 into an hloc matches.h5",
@@ -472,7 +475,8 @@ def add_collection_commands(sub) -> None:
                        "and write an hloc matches.h5 (matches0 / matching_scores0). Resumable.",
                        epilog=HLOC_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     h.add_argument("features", help="hloc features.h5 (keypoints, descriptors D x N)")
-    h.add_argument("pairs", help="pairs file ('name1 name2' lines), or exhaustive | sequential[:K]")
+    h.add_argument("pairs", help="pairs file ('name1 name2' lines), or exhaustive | sequential[:K] | retrieval[:K] "
+                                "| several joined by '+'")
     h.add_argument("matches", help="output matches.h5 (created, or completed when it exists)")
     _common(h, MODES)
     h.set_defaults(func=cmd_hloc)
@@ -531,7 +535,8 @@ def _setup(args, output: Path, open_source, spec: str):
             raise ConfigError(f"--timeline writes a PNG figure; give a .png path, got {args.timeline}")
         writable_folder(Path(args.timeline).parent, "--timeline")
     source = open_source()
-    pairs = pairs_from_spec(spec, source.names())
+    pairs = pairs_from_spec(spec, source.names(), source, retrieval=dict(progress=cfg.progress),
+                            retrieval_cache=Path(str(output) + ".retrieval.npz"))
     _print_pairs(pairs)
     source.validate(pairs.names())
     return cfg, source, pairs
@@ -545,9 +550,15 @@ def cmd_colmap(args) -> int:
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
         raise ConfigError(f"--max-inliers-per-pair must be >= 0 (0 = all inliers); got {args.max_inliers_per_pair}")
+    expand = _expansion_wanted(args)
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     with ColmapSink(db, geometry=args.geometry) as sink:
-        report = match_collection(source, pairs, sink, cfg)
+        if expand is not None:
+            from .collection.expansion import match_collection_expanded
+
+            report = match_collection_expanded(source, pairs, sink, cfg, expand)
+        else:
+            report = match_collection(source, pairs, sink, cfg)
         if args.geometry == "colmap" and report.done:
             n = sink.verify()
             print(f"verified   : {n} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
@@ -742,3 +753,24 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
+
+
+# --------------------------------------------------------------------------- colmap: verified expansion
+def _expansion_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--expand", action=argparse.BooleanOptionalAction, default=None,
+                   help="after the pairs, also match the pairs closing a triangle of verified pairs (a-b and b-c "
+                        "verified, a-c not tried), in rounds, until a round verifies nothing new (default: on "
+                        "when --pairs has a retrieval part, off otherwise)")
+    p.add_argument("--expand-rounds", type=_nonneg_int, default=None, metavar="N",
+                   help="at most N expansion rounds (default 10; 0 = none)")
+
+
+def _expansion_wanted(args):
+    """ExpansionConfig fields (dict) when the verified expansion runs, else None."""
+    parts = [x.strip() for x in str(args.pairs).split("+")] if not Path(args.pairs).exists() else []
+    on = args.expand if args.expand is not None else any(x.split(":")[0] == "retrieval" for x in parts)
+    if args.expand_rounds is not None and not on:
+        raise ConfigError("--expand-rounds needs the expansion (--expand, or a retrieval --pairs spec)")
+    if not on:
+        return None
+    return {} if args.expand_rounds is None else dict(max_rounds=args.expand_rounds)

@@ -138,7 +138,12 @@ def _kmeans(x: np.ndarray, k: int, niter: int, seed: int) -> np.ndarray:
         return np.ascontiguousarray(x[reps] if len(x) else np.zeros((k, x.shape[1]), np.float32))
     km = faiss.Kmeans(x.shape[1], k, niter=niter, seed=int(seed) + 1, verbose=False, min_points_per_centroid=1,
                       max_points_per_centroid=max(256, len(x) // k + 1))
-    km.train(np.ascontiguousarray(x, dtype=np.float32))
+    before = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)  # small problems: OpenMP threads cost more than they give (15x on a busy machine)
+    try:
+        km.train(np.ascontiguousarray(x, dtype=np.float32))
+    finally:
+        faiss.omp_set_num_threads(before)
     return np.asarray(km.centroids, np.float32)
 
 
