@@ -111,9 +111,10 @@ def _rows(desc: np.ndarray) -> np.ndarray:
     d = np.asarray(desc)
     if d.dtype == np.uint8 and d.ndim == 2 and d.shape[1] <= 64:  # packed binary (ORB / AKAZE ...)
         d = np.unpackbits(d, axis=1)
-    d = d.astype(np.float32, copy=False).reshape(len(d), -1)
-    n = np.linalg.norm(d, axis=1, keepdims=True)
-    return d / np.maximum(n, 1e-12)
+    d = np.array(d, dtype=np.float32, copy=True).reshape(len(d), -1)
+    n = np.sqrt(np.einsum("ij,ij->i", d, d))
+    d *= (1.0 / np.maximum(n, 1e-12))[:, None]
+    return d
 
 
 def _descriptors(source, name: str) -> np.ndarray:
@@ -298,7 +299,14 @@ def retrieval_pairs(source, names=None, config: RetrievalConfig | dict | None = 
         ``k, images, pairs, words, sample, reused ("none" | "vocabulary" | "all"), time_s, vocabulary_s,
         assign_s, shortlist_s, cache``.
     """
+    from threadpoolctl import threadpool_limits
+
     cfg = config_from(RetrievalConfig, config)
+    with threadpool_limits(1):  # small matrix products: BLAS threads cost more than they give (3.4x on a busy box)
+        return _retrieval_pairs(source, names, cfg, cache)
+
+
+def _retrieval_pairs(source, names, cfg: RetrievalConfig, cache) -> RetrievalResult:
     names = list(source.names() if names is None else names)
     path = retrieval_cache_path(source) if cache is True else (Path(cache) if cache else None)
     t0 = time.perf_counter()
