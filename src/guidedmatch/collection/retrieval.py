@@ -3,9 +3,10 @@
 No pretrained vocabulary and no download. :func:`retrieval_pairs` (``--pairs retrieval[:K]``):
 
 1. **Vocabulary** -- a two-level k-means quantizer (``coarse`` x ``fine`` words, default 64 x 64 = 4096) trained with
-   faiss on a seeded sample of the collection's descriptors (``sample`` rows in all, the same number from every
-   image). Descriptors are L2-normalised first (COLMAP's SIFT rows are RootSIFT already; binary descriptors are
-   unpacked to 0/1 bits). Two levels keep the assignment at ``coarse + fine`` distances per descriptor.
+   faiss on a seeded sample of the collection's descriptors (``sample`` rows in all, the same number from each of at
+   most ``train_images`` evenly spaced images: a constant cost however large the collection). Descriptors are
+   L2-normalised first (COLMAP's SIFT rows are RootSIFT already; binary descriptors are unpacked to 0/1 bits).
+   Two levels keep the assignment at ``coarse + fine`` distances per descriptor.
 2. **Bag of words** -- every descriptor of every image is assigned to its word (linear in the total number of
    features, one image in memory at a time); per image ``sqrt(tf) * idf``, L2-normalised: a sparse
    ``images x words`` matrix (``scipy.sparse``).
@@ -48,6 +49,7 @@ class RetrievalConfig:
     coarse: int = 64              # first-level k-means centroids
     fine: int = 64                # second-level centroids per first-level cell (words = coarse x fine)
     sample: int = 25_000          # descriptors sampled (seeded, evenly over the images) to train the vocabulary
+    train_images: int = 256       # images the sample is drawn from at most (evenly spaced in name order)
     seed: int = 0                 # seed of the sample and of k-means
     niter: int = 20               # k-means iterations per level
     block: int = 512              # rows of the similarity matrix computed at once (memory: block x images floats)
@@ -59,6 +61,7 @@ class RetrievalConfig:
         check_number(own, "coarse", self.coarse, lo=1, integer=True)
         check_number(own, "fine", self.fine, lo=1, integer=True)
         check_number(own, "sample", self.sample, lo=1, integer=True)
+        check_number(own, "train_images", self.train_images, lo=1, integer=True)
         check_number(own, "seed", self.seed, lo=0, integer=True)
         check_number(own, "niter", self.niter, lo=1, integer=True)
         check_number(own, "block", self.block, lo=1, integer=True)
@@ -156,6 +159,8 @@ def _nearest(x: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 def train_vocabulary(source, names, cfg: RetrievalConfig) -> tuple[np.ndarray, np.ndarray]:
     """``(coarse (C, D), fine (C, F, D))`` centroids trained on a seeded sample of the collection's descriptors."""
+    if len(names) > cfg.train_images:
+        names = [names[int(i)] for i in np.unique(np.linspace(0, len(names) - 1, cfg.train_images).round())]
     per = max(1, -(-cfg.sample // max(1, len(names))))
     parts = []
     bar = _bar(len(names), "retrieval: vocabulary sample", cfg.progress)
@@ -267,7 +272,8 @@ def shortlist(bow, k: int, block: int = 512) -> np.ndarray:
 def _key(source, names, cfg: RetrievalConfig) -> str:
     h = hashlib.sha256()
     nf = [int(source.num_features(n)) for n in names]
-    vocab = {k: v for k, v in asdict(cfg).items() if k in ("coarse", "fine", "sample", "seed", "niter")}
+    vocab = {k: v for k, v in asdict(cfg).items()
+             if k in ("coarse", "fine", "sample", "seed", "niter", "train_images")}
     h.update(json.dumps([list(map(str, names)), nf, vocab, 1]).encode())
     return h.hexdigest()[:32]
 

@@ -270,8 +270,8 @@ def markdown(res: dict) -> str:
         note = ""
         if m == "colmap_vocabtree":
             i = r["inner"]
-            note = (f"tree {i.get('tree_words')} words from {i.get('tree_sample')} descriptors: {i.get('tree_s', 0):.0f} s"
-                    f" (in the wall time); matching {i.get('match_s', 0):.0f} s")
+            note = (f"tree {i.get('tree_words')} words from {i.get('tree_sample')} descriptors: "
+                    f"{i.get('tree_s', 0):.0f} s (in the wall time); matching {i.get('match_s', 0):.0f} s")
         if r.get("retrieval"):
             note = f"retrieval stage {r['retrieval']['retrieval_s']:.1f} s = {100 * r['retrieval']['share']:.1f} %"
         lines.append(f"| {m} | {r['wall_s']:.0f} | {r['wall_s'] / base:.3f} | {r['pairs_tried']} | "
