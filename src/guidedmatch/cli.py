@@ -751,10 +751,6 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
-
-
 # --------------------------------------------------------------------------- colmap: verified expansion
 def _expansion_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--expand", action=argparse.BooleanOptionalAction, default=None,
@@ -774,3 +770,8 @@ def _expansion_wanted(args):
     if not on:
         return None
     return {} if args.expand_rounds is None else dict(max_rounds=args.expand_rounds)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
+

@@ -186,8 +186,10 @@ class StagedReport:
             lines.append(f"expansion  : {e['rounds']} round(s), stopped: {e['stopped']}"
                          + (f"; cap of {e['max_pairs_per_round']} pairs per round hit in {e['capped_rounds']} "
                             f"round(s)" if e.get("capped_rounds") else ""))
+        ret = sum(s["time_s"] for s in self.stages if s["stage"] == "retrieval")
+        share = f" ({ret:.2f} s retrieval = {100 * ret / (self.wall_s + ret):.1f} % + {self.wall_s:.2f} s matching)"
         lines.append(f"total      : {self.tried_pairs} pairs tried, {self.verified_pairs} verified, "
-                     f"{self.wall_s:.2f} s wall")
+                     f"{self.wall_s + ret:.2f} s wall" + (share if ret else ""))
         if self.reports:
             r = self.reports[-1]
             t = r.totals

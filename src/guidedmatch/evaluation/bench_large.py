@@ -185,7 +185,7 @@ def run_method(method: str, work: Path, k: int, vt_words: int, vt_sample: int, r
     res_path, db = work / f"{method}.json", work / f"{method}.db"
     if res_path.exists() and db.exists() and not rerun:
         return dict(json.loads(res_path.read_text()), reused=True)
-    for p in work.glob(f"{method}.db*"):
+    for p in [*work.glob(f"{method}.db*"), *work.glob(f"{method}.tmp.db*")]:  # incl. a killed run's retrieval cache
         p.unlink()
     tmp = work / f"{method}.tmp.db"
     shutil.copyfile(work / "features.db", tmp)
