@@ -190,6 +190,7 @@ def run_method(method: str, work: Path, k: int, vt_words: int, vt_sample: int, r
     tmp = work / f"{method}.tmp.db"
     shutil.copyfile(work / "features.db", tmp)
     load0 = os.getloadavg()
+    (work / f"{method}.start.json").write_text(json.dumps(dict(unix=time.time(), load=load0)))  # for --snapshot
     if method.startswith("colmap"):
         pf = None
         if method == "colmap_scene_pairs":  # every pair within a scene (names of one scene never contain spaces)
@@ -332,6 +333,112 @@ def run(data: Path, out: Path, work: Path, k: int, methods, rerun=(), vt_words: 
     return res
 
 
+def snapshot(data: Path, out: Path, work: Path, k: int) -> dict:
+    """Where every method's run stands now (finished or not): pairs tried and verified so far, verified across-scene
+    pairs among them, pairs/s since the run started and the projected time of its whole pair list; the reference
+    pairs COLMAP's same-scene run has verified so far, and how many of them our retrieval shortlist contains.
+    For runs that cannot finish on a crowded machine; the numbers say which runs were unfinished."""
+    from .meta import run_metadata, write_json
+
+    names = image_names(data)
+    scenes = scene_of(data, names)
+    n = len(names)
+    now = time.time()
+    rows = {}
+    for m in METHODS:
+        db = work / f"{m}.db" if (work / f"{m}.db").exists() else work / f"{m}.tmp.db"
+        start = work / f"{m}.start.json"
+        if not db.exists() or not start.exists():
+            continue
+        d = db_pairs(db)
+        ver = set(d["verified"])
+        t0 = json.loads(start.read_text())["unix"]
+        finished = db.name == f"{m}.db"
+        res = json.loads((work / f"{m}.json").read_text()) if finished and (work / f"{m}.json").exists() else {}
+        elapsed = res.get("wall_s", now - t0)
+        across_tried = sum(scenes[a] != scenes[b] for a, b in d["tried"])
+        rows[m] = dict(finished=finished, elapsed_s=elapsed, pairs_tried=len(d["tried"]), pairs_verified=len(ver),
+                       across_tried=across_tried, verified_across_scene=sum(scenes[a] != scenes[b] for a, b in ver),
+                       across_examples=[[a, b, d["verified"][(a, b)]] for a, b in sorted(ver)
+                                        if scenes[a] != scenes[b]][:10],
+                       pairs_per_s=len(d["tried"]) / max(elapsed, 1e-9))
+        total = {"colmap_exhaustive": n * (n - 1) // 2, "ours_exhaustive": n * (n - 1) // 2,
+                 "colmap_scene_pairs": sum(scenes[names[i]] == scenes[names[j]] for i in range(n)
+                                           for j in range(i + 1, n))}.get(m)
+        if total:
+            rows[m].update(pairs_total=total, projected_s=total / max(rows[m]["pairs_per_s"], 1e-9))
+    ref = {}
+    if "colmap_scene_pairs" in rows:
+        db = work / ("colmap_scene_pairs.db" if rows["colmap_scene_pairs"]["finished"] else "colmap_scene_pairs.tmp.db")
+        v = db_pairs(db)["verified"]
+        refset = {p for p, r in v.items() if r >= REFERENCE_MIN_INLIERS and scenes[p[0]] == scenes[p[1]]}
+        ref = dict(reference_so_far=len(refset), colmap_pairs_done=rows["colmap_scene_pairs"]["pairs_tried"])
+        for m in ("ours_retrieval_expand", "ours_retrieval"):
+            npz = [work / f"{m}{x}.db.retrieval.npz" for x in ("", ".tmp")]
+            npz = [p for p in npz if p.exists()]
+            if npz:
+                import numpy as np
+
+                with np.load(npz[0]) as z:
+                    nm = [str(x) for x in z["names"]]
+                    short = {tuple(sorted((nm[i], nm[j]))) for i, j in z["pairs"]}
+                ref[f"{m}_shortlist_pairs"] = len(short)
+                ref[f"{m}_shortlist_contains"] = len(refset & short)
+            if m in rows:
+                t = work / (f"{m}.db" if rows[m]["finished"] else f"{m}.tmp.db")
+                got = db_pairs(t)
+                rows[m]["reference_tried"] = len(refset & got["tried"])
+                rows[m]["reference_verified"] = len(refset & set(got["verified"]))
+    res = dict(meta=run_metadata(), kind="snapshot", images=n, pairs=n * (n - 1) // 2, k=k, rows=rows, reference=ref,
+               load=[round(x, 2) for x in os.getloadavg()], time_utc=time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()))
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "large_snapshot.json", res)
+    (out / "large_snapshot.md").write_text(snapshot_markdown(res))
+    snapshot_figure(res, out / "large_snapshot.png")
+    return res
+
+
+def snapshot_markdown(res: dict) -> str:
+    ref = res["reference"]
+    lines = [f"# Large collection, snapshot at {res['time_utc']} UTC (load average {res['load']})", "",
+             f"{res['images']} images, {res['pairs']} pairs. Runs marked unfinished were still running: their "
+             "numbers cover the pairs done so far; 'projected' = whole pair list / pairs per second so far.", "",
+             "| method | finished | elapsed s | pairs tried | verified | across-scene tried | verified across scenes "
+             "| pairs/s | projected s (whole list) |", "|---|---|---|---|---|---|---|---|---|"]
+    for m, r in res["rows"].items():
+        proj = f"{r['projected_s']:.0f} ({r['pairs_total']} pairs)" if "projected_s" in r else ""
+        lines.append(f"| {m} | {r['finished']} | {r['elapsed_s']:.0f} | {r['pairs_tried']} | {r['pairs_verified']} | "
+                     f"{r['across_tried']} | {r['verified_across_scene']} | {r['pairs_per_s']:.2f} | {proj} |")
+    if ref:
+        lines += ["", f"Reference pairs found so far (COLMAP, same-scene pairs, >= {REFERENCE_MIN_INLIERS} inliers): "
+                  f"{ref['reference_so_far']} in the {ref['colmap_pairs_done']} pairs COLMAP has matched."]
+        for m in ("ours_retrieval_expand", "ours_retrieval"):
+            if f"{m}_shortlist_pairs" in ref:
+                lines.append(f"{m}: the retrieval shortlist ({ref[f'{m}_shortlist_pairs']} pairs, K={res['k']}) "
+                             f"contains {ref[f'{m}_shortlist_contains']} of them "
+                             f"({100 * ref[f'{m}_shortlist_contains'] / max(1, ref['reference_so_far']):.1f} %).")
+    return "\n".join(lines) + "\n"
+
+
+def snapshot_figure(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = {m: r for m, r in res["rows"].items()}
+    fig, ax = plt.subplots(figsize=(6.5, 3.5))
+    ax.barh(list(rows), [r["pairs_per_s"] for r in rows.values()], color="tab:blue")
+    for i, r in enumerate(rows.values()):
+        ax.annotate(f"{r['pairs_tried']} pairs, {r['verified_across_scene']} across-scene verified",
+                    (r["pairs_per_s"], i), fontsize=7, xytext=(3, -3), textcoords="offset points")
+    ax.set_xlabel("pairs per second so far")
+    ax.set_title(f"snapshot {res['time_utc']} UTC, load {res['load'][0]}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=os.environ.get("GUIDEDMATCH_DATA", "/work/shared/data"))
     p.add_argument("--out", default="benchmarks/results/large")
@@ -342,6 +449,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vt-words", type=int, default=4096, help="visual words of COLMAP's tree built on the collection")
     p.add_argument("--vt-sample", type=int, default=200_000, help="descriptors sampled to build COLMAP's tree")
     p.add_argument("--note", default="")
+    p.add_argument("--snapshot", action="store_true", help="only evaluate where the (possibly unfinished) runs stand")
 
 
 def main(argv=None) -> int:
@@ -349,6 +457,9 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(p)
     a = p.parse_args(argv)
+    if a.snapshot:
+        print(json.dumps(snapshot(Path(a.data), Path(a.out), Path(a.work), a.k), indent=1, default=str))
+        return 0
     methods = [m for m in a.methods.split(",") if m]
     bad = [m for m in methods if m not in METHODS]
     if bad:
