@@ -159,3 +159,9 @@ def test_bag_of_words_and_shortlist_match_slow_references():
                 want.add((min(i, j), max(i, j)))
         got = {tuple(p) for p in shortlist(sp.csr_matrix(ref.astype(np.float32)), k, block=7)}
         assert got == want, (k, got ^ want)
+    # hub-corrected ranking (CSLS): 2 cos - r_i - r_j, r = mean of the 4 largest cosines of each image
+    r = np.array([np.sort(sim[i][np.isfinite(sim[i])])[-4:].mean() for i in range(n)])
+    csls = 2 * sim - r[:, None] - r[None, :]
+    want = {(min(i, j), max(i, j)) for i in range(n) for j in np.argsort(-csls[i], kind="stable")[:3]}
+    got = {tuple(p) for p in shortlist(sp.csr_matrix(ref.astype(np.float32)), 3, block=7, hub_k=4)}
+    assert got == want
