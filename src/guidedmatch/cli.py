@@ -391,6 +391,9 @@ COLMAP_EXAMPLES = """examples:
   guidedmatch colmap project/database.db                       # every pair (exhaustive), our two-view geometry
   guidedmatch colmap db.db --pairs sequential:10               # video: each image with the next 10
   guidedmatch colmap db.db --pairs pairs.txt --workers 2       # a COLMAP / hloc pairs file, 2 local processes
+  guidedmatch colmap db.db --pairs retrieval:20                # hundreds of photos: each image's 20 most similar
+                                                               # (own visual words), then the verified expansion
+  guidedmatch colmap db.db --pairs sequential:5+retrieval:10   # a walk or video: neighbours and look-alikes
   guidedmatch colmap db.db --scheduler tcp://10.0.0.1:8786     # a running Dask cluster (shared storage)
   guidedmatch colmap db.db --geometry colmap                   # raw matches, then COLMAP's own verification
   guidedmatch colmap db.db --workers 2 --timeline run.png      # and a figure of when each pair ran, per worker
