@@ -26,6 +26,12 @@ show to be across scenes (their number is reported).
 
 Writes ``large.json`` (every number + run metadata), ``large.md`` and ``large.png`` (time vs recall). The machine
 is shared: times are noisy, ratios within one run are the numbers to read (the load average is recorded).
+
+``--snapshot`` evaluates where the runs stand while they are still running (each method's partial database in WORK):
+pairs tried and verified so far, verified across-scene pairs among them, pairs/s and the projected time of the whole
+pair list, the reference pairs COLMAP has verified so far and how many of them the retrieval shortlist contains --
+``large_snapshot.{json,md,png}``. Methods can run side by side: ``--methods ours_exhaustive`` in one process and
+``--methods colmap_scene_pairs`` in another (the same WORK); a final run with every method reuses the cached ones.
 """
 from __future__ import annotations
 
