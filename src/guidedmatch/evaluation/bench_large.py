@@ -390,6 +390,16 @@ def snapshot(data: Path, out: Path, work: Path, k: int) -> dict:
                     short = {tuple(sorted((nm[i], nm[j]))) for i, j in z["pairs"]}
                 ref[f"{m}_shortlist_pairs"] = len(short)
                 ref[f"{m}_shortlist_contains"] = len(refset & short)
+                state = [work / f"{m}{x}.db.expansion.json" for x in ("", ".tmp")]
+                state = [p for p in state if p.exists()]
+                if state:  # the expansion rounds saved so far (their candidates, matched or not yet)
+                    cov, per = set(short), []
+                    for r in json.loads(state[0].read_text()).get("rounds", []):
+                        cand = {tuple(sorted(p)) for p in r["pairs"]}
+                        cov |= cand
+                        per.append(dict(candidates=len(cand), capped=r["capped"], contains=len(refset & cov),
+                                        across_scene=sum(scenes[a] != scenes[b] for a, b in cand)))
+                    ref[f"{m}_rounds"] = per
             if m in rows:
                 t = work / (f"{m}.db" if rows[m]["finished"] else f"{m}.tmp.db")
                 got = db_pairs(t)
@@ -423,6 +433,14 @@ def snapshot_markdown(res: dict) -> str:
                 lines.append(f"{m}: the retrieval shortlist ({ref[f'{m}_shortlist_pairs']} pairs, K={res['k']}) "
                              f"contains {ref[f'{m}_shortlist_contains']} of them "
                              f"({100 * ref[f'{m}_shortlist_contains'] / max(1, ref['reference_so_far']):.1f} %).")
+                for i, r in enumerate(ref.get(f"{m}_rounds", []), 1):
+                    lines.append(f"  + expansion round {i}: {r['candidates']} candidates ({r['across_scene']} across "
+                                 f"scenes{', capped' if r['capped'] else ''}): shortlist + rounds contain "
+                                 f"{r['contains']} ({100 * r['contains'] / max(1, ref['reference_so_far']):.1f} %).")
+                if m in res["rows"] and "reference_tried" in res["rows"][m]:
+                    r = res["rows"][m]
+                    lines.append(f"  matched so far: {r['reference_tried']} of these reference pairs, "
+                                 f"{r['reference_verified']} of them verified.")
     return "\n".join(lines) + "\n"
 
 
