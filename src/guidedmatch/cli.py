@@ -777,4 +777,3 @@ def _expansion_wanted(args):
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
-
