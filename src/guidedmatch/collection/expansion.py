@@ -83,6 +83,27 @@ def read_verified_graph(database_path, min_inliers: int = 1, *, tried_from: str 
     return tried, verified
 
 
+def sink_verified_graph(sink, min_inliers: int = 1):
+    """``(tried, verified)`` as :func:`read_verified_graph`, read through the sink's own database connection (the
+    writer's view: a separate connection did not always see the pairs an in-process run had just written) --
+    ``tried`` = ``sink.done_pairs()``, ``verified`` = pairs whose two-view geometry has ``min_inliers`` inliers."""
+    import pycolmap
+
+    db = getattr(sink, "_db", None)
+    if db is None:
+        return read_verified_graph(sink.path, min_inliers,
+                                   tried_from="geometry" if sink.geometry == "ours" else "matches")
+    pids, nums = db.read_two_view_geometry_num_inliers()
+    verified = set()
+    for pid, num in zip(pids, nums):
+        if int(num) >= min_inliers:
+            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+            a, b = sink._names.get(int(i1)), sink._names.get(int(i2))
+            if a is not None and b is not None:
+                verified.add(frozenset((a, b)))
+    return set(sink.done_pairs()), verified
+
+
 def triangle_candidates(names, tried, verified, min_support: int = 1, limit: int | None = None):
     """Untried pairs ``(a, c)`` with at least ``min_support`` common verified neighbours ``b`` (``a-b`` and ``b-c``
     verified), most supported first (ties: the order of ``names``); ``(pairs, support, total)`` with ``total`` the
@@ -273,7 +294,8 @@ def match_collection_expanded(source, pairs, sink, config=None, expand: Expansio
             sink.verify()  # COLMAP's verification of the pairs with matches and no geometry yet
         reports.append(rep)
         failed.extend(rep.failed)
-        tried, verified = read_verified_graph(db, ecfg.min_inliers, tried_from=tried_from)
+        tried, verified = (sink_verified_graph(sink, ecfg.min_inliers) if hasattr(sink, "_names")
+                           else read_verified_graph(db, ecfg.min_inliers, tried_from=tried_from))
         stages.append(dict(stage=stage, pairs=len(todo), matched=rep.done, skipped=rep.skipped,
                            failed=len(rep.failed), verified=sum(frozenset(p) in verified for p in todo),
                            time_s=time.perf_counter() - t, **extra))
