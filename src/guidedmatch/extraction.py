@@ -396,7 +396,7 @@ def database_keypoint_counts(database_path: str | os.PathLike) -> dict[str, int]
 
 
 def _list_names(image_dir: Path, image_names) -> list[str]:
-    from .sfm import list_images
+    from .collection.image_folder import list_images
 
     if not image_dir.is_dir():
         raise InputError(f"image folder not found: {image_dir}")

@@ -17,6 +17,9 @@ COLMAP_EXAMPLES = """examples:
   guidedmatch colmap project/database.db                       # every pair (exhaustive), our two-view geometry
   guidedmatch colmap db.db --pairs sequential:10               # video: each image with the next 10
   guidedmatch colmap db.db --pairs pairs.txt --workers 2       # a COLMAP / hloc pairs file, 2 local processes
+  guidedmatch colmap db.db --pairs retrieval:20                # hundreds of photos: each image's 20 most similar
+                                                               # (own visual words), then the verified expansion
+  guidedmatch colmap db.db --pairs sequential:5+retrieval:10   # a walk or video: neighbours and look-alikes
   guidedmatch colmap db.db --scheduler tcp://10.0.0.1:8786     # a running Dask cluster (shared storage)
   guidedmatch colmap db.db --geometry colmap                   # raw matches, then COLMAP's own verification
   guidedmatch colmap db.db --workers 2 --timeline run.png      # and a figure of when each pair ran, per worker
@@ -74,7 +77,9 @@ def add_commands(sub, parents) -> None:
                        epilog=COLMAP_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     c.add_argument("database", help="COLMAP database (.db) with images, keypoints and descriptors")
     c.add_argument("--pairs", default="exhaustive", metavar="SPEC",
-                   help="exhaustive | sequential[:K[:quadratic]] | PAIRS.txt ('name1 name2' lines); default exhaustive")
+                   help="exhaustive | sequential[:K[:quadratic]] | retrieval[:K] (the K most similar images of each "
+                        "image by the collection's own visual words; K default 20) | PAIRS.txt ('name1 name2' lines) "
+                        "| several joined by '+', e.g. sequential:5+retrieval:20; default exhaustive")
     c.add_argument("--geometry", default="ours", choices=("ours", "colmap"),
                    help="ours: our two-view verdict per pair (no separate verification); colmap: raw matches, then "
                         "pycolmap's geometric verification (default ours)")
@@ -83,6 +88,7 @@ def add_commands(sub, parents) -> None:
                         "(default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; "
                         "below 100 COLMAP's mapper cannot pick an initial pair)")
     add_matching_options(c, MODES)
+    add_expansion_options(c)
     c.set_defaults(func=cmd_colmap)
 
     h = sub.add_parser("hloc", parents=parents, help="match the pairs of an hloc features.h5 into an hloc matches.h5",
@@ -90,7 +96,8 @@ def add_commands(sub, parents) -> None:
                        "and write an hloc matches.h5 (matches0 / matching_scores0). Resumable.",
                        epilog=HLOC_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     h.add_argument("features", help="hloc features.h5 (keypoints, descriptors D x N)")
-    h.add_argument("pairs", help="pairs file ('name1 name2' lines), or exhaustive | sequential[:K]")
+    h.add_argument("pairs", help="pairs file ('name1 name2' lines), or exhaustive | sequential[:K] | retrieval[:K] "
+                                "| several joined by '+'")
     h.add_argument("matches", help="output matches.h5 (created, or completed when it exists)")
     add_matching_options(h, MODES)
     h.set_defaults(func=cmd_hloc)
@@ -153,10 +160,32 @@ def _setup(args, output: Path, open_source, spec: str):
             raise ConfigError(f"--timeline writes a PNG figure; give a .png path, got {args.timeline}")
         writable_folder(Path(args.timeline).parent, "--timeline")
     source = open_source()
-    pairs = pairs_from_spec(spec, source.names())
+    pairs = pairs_from_spec(spec, source.names(), source, retrieval=dict(progress=cfg.progress),
+                            retrieval_cache=Path(str(output) + ".retrieval.npz"))
     _print_pairs(pairs)
     source.validate(pairs.names())
     return cfg, source, pairs
+
+
+def add_expansion_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--expand", action=argparse.BooleanOptionalAction, default=None,
+                   help="after the pairs, also match the pairs closing a triangle of verified pairs (a-b and b-c "
+                        "verified, a-c not tried), in rounds, until a round verifies nothing new (default: on "
+                        "when --pairs has a retrieval part, off otherwise)")
+    p.add_argument("--expand-rounds", type=nonneg_int, default=None, metavar="N",
+                   help="at most N expansion rounds (default 10; 0 = none)")
+
+
+def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict | None:
+    """ExpansionConfig fields (dict) when the verified expansion runs, else None: on by default when the pair spec
+    has a retrieval part."""
+    parts = [x.strip() for x in str(spec).split("+")] if not Path(spec).exists() else []
+    on = expand if expand is not None else any(x.split(":")[0] == "retrieval" for x in parts)
+    if rounds is not None and not on:
+        raise ConfigError("--expand-rounds needs the expansion (--expand, or a retrieval --pairs spec)")
+    if not on:
+        return None
+    return {} if rounds is None else dict(max_rounds=rounds)
 
 
 def cmd_colmap(args) -> int:
@@ -166,9 +195,10 @@ def cmd_colmap(args) -> int:
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
         raise ConfigError(f"--max-inliers-per-pair must be >= 0 (0 = all inliers); got {args.max_inliers_per_pair}")
+    expand = expansion_wanted(args.pairs, args.expand, args.expand_rounds)
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
-                               max_inliers_per_pair=args.max_inliers_per_pair)
+                               max_inliers_per_pair=args.max_inliers_per_pair, expand=expand)
     if done["verified"] is not None:
         print(f"verified   : {done['verified']} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
     if (cap := done["inlier_cap"]) is not None:

@@ -181,8 +181,9 @@ def add_commands(sub, parents) -> None:
     s.add_argument("image_dir", help="folder of images (searched recursively; names relative to it)")
     s.add_argument("out_dir", help="project folder (created; database.db, sparse/, report.*)")
     add_extraction_options(s)
-    s.add_argument("--pairs", default="exhaustive", help="exhaustive (default), sequential, sequential:K, or a "
-                   "file of 'name1 name2' lines")
+    s.add_argument("--pairs", default="auto", help="auto (default: exhaustive up to 60 images, else retrieval:20 "
+                   "followed by the verified expansion), exhaustive, sequential[:K], retrieval[:K], specs joined by "
+                   "'+', or a file of 'name1 name2' lines")
     s.add_argument("--mode", default="so+epi+ia", choices=MODES, help="matching mode (default so+epi+ia)")
     s.add_argument("--config", action="append", metavar="KEY=VALUE", help="matcher config override (repeatable)")
     s.add_argument("--geometry", default="ours", choices=("ours", "colmap"), help="two-view geometry: ours "

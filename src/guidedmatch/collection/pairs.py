@@ -1,4 +1,5 @@
-"""Which image pairs of a collection to match: exhaustive, sequential (COLMAP's semantics) or a pairs file.
+"""Which image pairs of a collection to match: exhaustive, sequential (COLMAP's semantics), retrieval (the
+collection's own visual words, :mod:`~guidedmatch.collection.retrieval`), a pairs file, or a union of these.
 
 Every constructor returns a :class:`PairList`: the pairs to match, each unordered pair once, in a deterministic
 order, plus a ``report`` of the normalizations applied to the input (self-pairs, duplicates and the second order
@@ -211,16 +212,80 @@ def write_pairs_file(path: str | os.PathLike, pairs: Iterable[Pair]) -> None:
     atomic_write_text(path, "".join(f"{a} {b}\n" for a, b in pairs))
 
 
-def pairs_from_spec(spec: str, names: Sequence[str]) -> PairList:
+def check_pairs_spec(spec: str, names: Sequence[str]) -> None:
+    """Fail now (ConfigError / InputError) on a spec :func:`pairs_from_spec` would refuse, without computing
+    anything expensive: retrieval parts are only parsed (their pairs need the features).
+
+    >>> check_pairs_spec("sequential:2+retrieval:5", ["a", "b", "c"])
+    >>> check_pairs_spec("retrieval:0", ["a", "b"])
+    Traceback (most recent call last):
+    ...
+    guidedmatch.errors.ConfigError: pairs spec 'retrieval:0': expected retrieval[:K] with an integer K >= 1 (images kept per image), got '0'
+    """
+    spec = str(spec).strip()
+    parts = [p.strip() for p in spec.split("+")] if "+" in spec and not Path(spec).exists() else [spec]
+    if any(not p for p in parts):
+        raise ConfigError(f"pairs spec {spec!r}: an empty part between '+' signs")
+    for part in parts:
+        if part == "retrieval" or part.startswith("retrieval:"):
+            from .retrieval import parse_retrieval_spec
+
+            parse_retrieval_spec(part)
+        else:
+            pairs_from_spec(part, names)
+
+
+def pairs_from_spec(spec: str, names: Sequence[str], source=None, *, retrieval=None,
+                    retrieval_cache=True) -> PairList:
     """Pairs from a CLI spec: ``"exhaustive"``, ``"sequential"`` (K = 10), ``"sequential:K"``,
-    ``"sequential:K:quadratic"`` or the path of a pairs file.
+    ``"sequential:K:quadratic"``, ``"retrieval"`` / ``"retrieval:K"`` (the K most similar images of every image by
+    the collection's own visual words, :mod:`guidedmatch.collection.retrieval`; needs ``source``), the path of a
+    pairs file, or several of these joined by ``+`` (their union, e.g. ``"sequential:5+retrieval:20"``).
+
+    Args:
+        spec: the spec.
+        names: the images (of ``source``).
+        source: the feature source; required by ``retrieval`` specs (its descriptors give the similarities).
+        retrieval: :class:`~guidedmatch.collection.retrieval.RetrievalConfig` fields (dict) for ``retrieval`` specs
+            (``k`` comes from the spec).
+        retrieval_cache: where the retrieval stage saves its vocabulary and shortlist (True: next to the source's
+            file; a path; None: nowhere).
+
+    The report of a list with a retrieval part has ``"retrieval"``: the stage's facts (time, words, reused ...).
 
     >>> len(pairs_from_spec("sequential:2", ["a", "b", "c", "d"]))
     5
+    >>> pairs_from_spec("sequential:1+exhaustive", ["a", "b", "c"]).report["source"]
+    'sequential:1+exhaustive'
     """
     spec = str(spec).strip()
+    if "+" in spec and not Path(spec).exists():
+        parts = [p.strip() for p in spec.split("+")]
+        if any(not p for p in parts):
+            raise ConfigError(f"pairs spec {spec!r}: an empty part between '+' signs")
+        lists = [pairs_from_spec(p, names, source, retrieval=retrieval, retrieval_cache=retrieval_cache)
+                 for p in parts]
+        merged = normalize_pairs([pr for pl in lists for pr in pl.pairs], None, source=spec)
+        report = dict(merged.report)
+        report["duplicates"] = {"count": 0, "examples": []}  # overlap between the parts is expected, not an error
+        report["reversed_duplicates"] = {"count": 0, "examples": []}
+        report["parts"] = {pl.report.get("source", p): len(pl) for p, pl in zip(parts, lists)}
+        for pl in lists:
+            if "retrieval" in pl.report:
+                report["retrieval"] = pl.report["retrieval"]
+        return PairList(merged.pairs, report)
     if spec == "exhaustive":
         return exhaustive_pairs(names)
+    if spec == "retrieval" or spec.startswith("retrieval:"):
+        from .retrieval import parse_retrieval_spec, retrieval_pairs
+
+        k = parse_retrieval_spec(spec)
+        if source is None:
+            raise ConfigError(f"pairs spec {spec!r} needs the feature source (its descriptors): "
+                              "pairs_from_spec(spec, names, source)")
+        res = retrieval_pairs(source, names, {**(retrieval or {}), "k": k}, cache=retrieval_cache)
+        pl = normalize_pairs(res.pairs, None, source=f"retrieval:{k}")
+        return PairList(pl.pairs, {**pl.report, "retrieval": res.info})
     if spec == "sequential" or spec.startswith("sequential:"):
         parts = spec.split(":")
         k = 10
@@ -236,5 +301,6 @@ def pairs_from_spec(spec: str, names: Sequence[str]) -> PairList:
             raise ConfigError(f"pairs spec {spec!r}: expected sequential[:K[:quadratic]] with an integer K") from None
         return sequential_pairs(names, k, quadratic)
     if not Path(spec).exists():
-        raise InputError(f"pairs {spec!r}: not 'exhaustive', 'sequential[:K[:quadratic]]' or an existing pairs file")
+        raise InputError(f"pairs {spec!r}: not 'exhaustive', 'sequential[:K[:quadratic]]', 'retrieval[:K]', "
+                         "several of these joined by '+', or an existing pairs file")
     return read_pairs_file(spec, names)

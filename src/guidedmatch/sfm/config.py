@@ -63,7 +63,8 @@ class SfmConfig:
     camera: str | None = None          # known intrinsics "MODEL:params" for every image (held fixed in bundle adjustment)
     single_camera: bool = False        # all images share one camera (intrinsics estimated jointly)
     bad_images: str = "skip"           # a damaged image: "skip" (left out, listed in the report) | "refuse" (error)
-    pairs: str = "exhaustive"          # "exhaustive" | "sequential" | "sequential:K" | path of a "name1 name2" file
+    pairs: str = "auto"                # "auto" (exhaustive up to 60 images, else retrieval:20 + verified expansion) |
+                                       # "exhaustive" | "sequential[:K]" | "retrieval[:K]" | "a+b" | a pairs file
     mode: str = "so+epi+ia"            # matcher mode (guidedmatch.matcher.match)
     matcher: dict | None = None        # MatcherConfig overrides, e.g. {"alignment": "c_inplane"}
     geometry: str = "ours"             # two-view geometry: "ours" (matcher's verdict written) | "colmap" (pycolmap verifies)
@@ -91,7 +92,8 @@ class SfmConfig:
         check_bool(o, "single_camera", self.single_camera)
         check_choice(o, "bad_images", self.bad_images, ("skip", "refuse"))
         if not isinstance(self.pairs, str) or not self.pairs:
-            raise ConfigError(f"{o}.pairs must be 'exhaustive', 'sequential[:K]' or a pairs file; got {self.pairs!r}")
+            raise ConfigError(f"{o}.pairs must be 'auto', 'exhaustive', 'sequential[:K]', 'retrieval[:K]' or a "
+                              f"pairs file; got {self.pairs!r}")
         check_choice(o, "mode", self.mode, MODES)
         if self.matcher is not None and not isinstance(self.matcher, dict):
             raise ConfigError(f"{o}.matcher must be a dict of MatcherConfig fields or None; got {self.matcher!r}")

@@ -54,7 +54,7 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     :func:`guidedmatch._runtime.zlib_shadowed`), ConfigError (bad settings). After the extraction: InputError when
     fewer than 2 images are usable; ImageReadError with ``bad_images="refuse"`` and a damaged image."""
     from .._runtime import require_zlib
-    from ..collection.pairs import pairs_from_spec
+    from ..collection.pairs import check_pairs_spec
     from ..evaluation.meta import run_metadata, write_json
     from ..features import atomic_write_text
 
@@ -63,7 +63,8 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     t_start = time.perf_counter()
     names = image_names(paths.image_dir)
     project = check_output(conf, paths, paths.project)
-    pairs_from_spec(conf.pairs, names)   # a bad spec, a missing pairs file or unknown names fail here, before any work
+    if conf.pairs != "auto":
+        check_pairs_spec(conf.pairs, names)   # a bad spec, a missing pairs file or unknown names fail here, before any work
     make_folder(paths.out_dir, "OUT_DIR")
     write_project(paths.project, project)
 

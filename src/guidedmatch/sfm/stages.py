@@ -286,11 +286,13 @@ def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLik
 
 # --------------------------------------------------------------------------- stage 2: matching
 def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
-                        max_inliers_per_pair: int = 0) -> dict:
+                        max_inliers_per_pair: int = 0, expand: dict | None = None) -> dict:
     """The matching stage's work, shared by ``guidedmatch colmap`` and :func:`match_main`: the collection engine over
     ``pairs`` into the COLMAP ``database`` (pairs already there skipped); with ``geometry="colmap"`` pycolmap's
     verification of the pairs without a geometry; then at most ``max_inliers_per_pair`` inliers per pair for the
-    mapper (0: all). Returns ``{"report": CollectionReport, "match_time_s", "verified" (pairs verified by COLMAP
+    mapper (0: all). ``expand`` (ExpansionConfig fields): then the verified expansion -- the pairs closing a
+    triangle of verified pairs, in rounds (:func:`guidedmatch.collection.expansion.match_collection_expanded`).
+    Returns ``{"report": CollectionReport, "match_time_s", "verified" (pairs verified by COLMAP
     now, or None), "verify_time_s", "inlier_cap" (the cap's record or None)}``."""
     from ..collection.engine import match_collection
     from ..collection.sinks import ColmapSink
@@ -298,7 +300,12 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
     t0 = time.perf_counter()
     verified, t_verify, cap = None, 0.0, None
     with ColmapSink(database, geometry=geometry) as sink:
-        report = match_collection(source, pairs, sink, cconf)
+        if expand is not None:
+            from ..collection.expansion import match_collection_expanded
+
+            report = match_collection_expanded(source, pairs, sink, cconf, expand)
+        else:
+            report = match_collection(source, pairs, sink, cconf)
         t_match = time.perf_counter() - t0
         if geometry == "colmap":
             t1 = time.perf_counter()
@@ -312,6 +319,28 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
             "inlier_cap": cap}
 
 
+#: ``pairs="auto"``: every pair up to this many images, else retrieval pairs + the verified expansion
+AUTO_EXHAUSTIVE_MAX_IMAGES = 60
+AUTO_RETRIEVAL_K = 20
+
+
+def auto_pairs(num_images: int) -> str:
+    """The pair spec of ``pairs="auto"``: ``exhaustive`` up to :data:`AUTO_EXHAUSTIVE_MAX_IMAGES` images (at most
+    1,770 pairs: minutes), ``retrieval:20`` above (n*20 shortlisted pairs, then the verified expansion).
+
+    >>> auto_pairs(8), auto_pairs(220)
+    ('exhaustive', 'retrieval:20')
+    """
+    return "exhaustive" if num_images <= AUTO_EXHAUSTIVE_MAX_IMAGES else f"retrieval:{AUTO_RETRIEVAL_K}"
+
+
+def expansion_wanted(spec: str) -> dict | None:
+    """The verified expansion follows a pair spec with a retrieval part (ExpansionConfig defaults), else None."""
+    if Path(spec).exists():
+        return None
+    return {} if any(x.strip().split(":")[0] == "retrieval" for x in spec.split("+")) else None
+
+
 def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     """Stage 2: match the pair list with the collection engine into the database (:func:`match_into_database`)."""
     from ..collection.engine import CollectionConfig
@@ -323,13 +352,17 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     with peak_memory(record):
         source = ColmapSource(paths.database)
         try:
-            pair_list = pairs_from_spec(conf.pairs, [n for n in source.names() if n in set(names)])
+            usable = [n for n in source.names() if n in set(names)]
+            spec = auto_pairs(len(usable)) if conf.pairs == "auto" else conf.pairs
+            pair_list = pairs_from_spec(spec, usable, source, retrieval=dict(progress=conf.progress),
+                                        retrieval_cache=Path(str(paths.database) + ".retrieval.npz"))
+            expand = expansion_wanted(spec)
             say(conf, f"[2/3] matching ({conf.mode}, geometry {conf.geometry}): {len(pair_list.pairs)} pairs "
-                      f"({conf.pairs})")
+                      f"({spec}{', then the verified expansion' if expand is not None else ''})")
             cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
                                      scheduler=conf.scheduler, progress=conf.progress, log_path=str(paths.pair_log))
             done = match_into_database(source, pair_list.pairs, paths.database, cconf, geometry=conf.geometry,
-                                       max_inliers_per_pair=conf.max_inliers_per_pair)
+                                       max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand)
         finally:
             source.close()
         pairs = database_pair_stats(paths.database)

@@ -1,0 +1,55 @@
+"""The large-collection benchmark's bookkeeping (guidedmatch.evaluation.bench_large): names, scenes, database pairs."""
+from __future__ import annotations
+
+import shutil
+
+from guidedmatch.datasets import data_root
+from guidedmatch.evaluation.bench_large import FOLDERS, db_pairs, image_names, markdown, scene_of
+from guidedmatch.testing.data import needs_data
+
+
+@needs_data("collections/scenes.txt", *(f"{f}/*" for f in FOLDERS))
+def test_names_are_unique_relative_paths_and_scenes_follow_the_labels():
+    root = data_root()
+    names = image_names(root)
+    assert len(names) == len(set(names)) == 220
+    scenes = scene_of(root, names)
+    p8 = [n for n in names if "Herz-Jesus-P8" in n]
+    assert len(p8) == 8 and {scenes[n] for n in p8} == {"Herz-Jesus-P25"}
+    photos = [n for n in names if n.startswith("photos/")]
+    assert len({scenes[n] for n in photos}) == len(photos) == 24  # each photo its own scene
+    n = len(names)
+    same = sum(scenes[names[i]] == scenes[names[j]] for i in range(n) for j in range(i + 1, n))
+    assert same == 5356  # C(33,2) + 2 C(67,2) + C(29,2), as the collection's README counts
+
+
+def test_db_pairs_reads_tried_and_verified_pairs_with_sorted_names(tmp_path):
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import images_to_database
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(3, (320, 240), seed=1, isolated=False, spacing=0.5)
+    write_views(mv, tmp_path / "img")
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", progress=False)
+    from guidedmatch.collection.engine import match_collection
+
+    with ColmapSink(tmp_path / "db.db") as sink:
+        rep = match_collection(src, [("view_01.png", "view_00.png"), ("view_01.png", "view_02.png")], sink,
+                               dict(progress=False, workers=0))
+    d = db_pairs(tmp_path / "db.db")
+    assert d["tried"] == {("view_00.png", "view_01.png"), ("view_01.png", "view_02.png")}
+    assert set(d["verified"]) <= d["tried"]
+    assert sum(d["verified"].values()) == rep.totals["inliers"]
+
+
+def test_markdown_table_has_one_row_per_method():
+    row = dict(wall_s=10.0, pairs_tried=5, pairs_verified=3, recall=0.5, reference_tried=2, verified_across_scene=0,
+               inner={})
+    res = dict(images=4, pairs=6, across_pairs=2, k=2, load_start=[1, 1, 1], extraction=dict(extract_s=1.0),
+               reference=dict(reference=4, min_inliers=100, reference_strong=5, reference_dropped_across=1),
+               rows={"colmap_exhaustive": dict(row), "ours_retrieval": dict(row, wall_s=1.0,
+                                                                             retrieval=dict(retrieval_s=0.1,
+                                                                                            share=0.1))})
+    md = markdown(res)
+    assert "| colmap_exhaustive | 10 | 1.000 |" in md and "| ours_retrieval | 1 | 0.100 |" in md
+    assert "retrieval stage 0.1 s = 10.0 %" in md

@@ -1,0 +1,186 @@
+"""Verified expansion: triangle-closing pairs in rounds (guidedmatch.collection.expansion)."""
+from __future__ import annotations
+
+import itertools
+import shutil
+import sqlite3
+
+import pytest
+
+from guidedmatch.cli import main as cli_main
+from guidedmatch.collection.expansion import (ExpansionConfig, match_collection_expanded, read_verified_graph,
+                                              triangle_candidates)
+from guidedmatch.collection.pairs import sequential_pairs
+from guidedmatch.errors import ConfigError
+
+CFG = dict(progress=False, workers=0, threads=1)
+
+
+def _fs(pairs):
+    return {frozenset(p) for p in pairs}
+
+
+def test_candidates_are_exactly_the_untried_triangle_closing_pairs():
+    names = list("abcdefg")
+    verified = _fs([("a", "b"), ("b", "c"), ("c", "d"), ("b", "d"), ("e", "f")])
+    tried = verified | _fs([("a", "c")])  # a-c tried (not verified): never proposed again
+    got, support, total = triangle_candidates(names, tried, verified)
+    # slow reference: every pair with a common verified neighbour, minus the tried ones
+    want = set()
+    for x, y in itertools.combinations(names, 2):
+        if any(frozenset((x, b)) in verified and frozenset((b, y)) in verified for b in names):
+            if frozenset((x, y)) not in tried:
+                want.add(frozenset((x, y)))
+    assert _fs(got) == want == _fs([("a", "d")]) and total == 1 and support == [1]
+    got2, sup2, _ = triangle_candidates(names, verified, verified)
+    assert got2 == [("a", "c"), ("a", "d")] and sup2 == [1, 1]  # equal support: in the order of the names
+    square = _fs([("a", "b"), ("b", "c"), ("a", "d"), ("d", "c"), ("c", "e")])
+    got3, sup3, _ = triangle_candidates("abcde", square, square)
+    assert got3 == [("a", "c"), ("b", "d"), ("b", "e"), ("d", "e")] and sup3 == [2, 2, 1, 1]  # most supported first
+    capped, _, total = triangle_candidates("abcde", square, square, limit=1)
+    assert capped == [("a", "c")] and total == 4
+    assert triangle_candidates(names, set(), set()) == ([], [], 0)
+
+
+@pytest.fixture(scope="module")
+def chain_db(tmp_path_factory):
+    """A COLMAP database of one rendered sequence of 6 overlapping views + 1 view looking away."""
+    from guidedmatch.collection.sources import images_to_database
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    d = tmp_path_factory.mktemp("expansion")
+    mv = make_multiview(6, (480, 360), seed=3, isolated=True, spacing=1.0)
+    write_views(mv, d / "img")
+    images_to_database(d / "img", d / "db.db", progress=False).close()
+    return d / "db.db"
+
+
+def _rows(db):
+    con = sqlite3.connect(db)
+    try:
+        return (sorted(con.execute("SELECT pair_id, rows, cols, data FROM matches")),
+                sorted(con.execute("SELECT pair_id, rows, config, data FROM two_view_geometries")))
+    finally:
+        con.close()
+
+
+def _run(db, expand=None, sink_wrapper=None):
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import ColmapSource
+
+    src = ColmapSource(db)
+    pairs = sequential_pairs(src.names(), 1)
+    with ColmapSink(db) as sink:
+        use = sink_wrapper(sink) if sink_wrapper else sink
+        return match_collection_expanded(src, pairs, use, CFG, expand)
+
+
+class _DieAfter:
+    """A ColmapSink stand-in that raises after ``n`` writes (a crash mid-stage)."""
+
+    def __init__(self, sink, n):
+        self.sink, self.n = sink, n
+        self.kind, self.path, self.geometry = sink.kind, sink.path, sink.geometry
+
+    def done_pairs(self, candidates=None):
+        return self.sink.done_pairs(candidates)
+
+    def write(self, *a, **k):
+        if self.n <= 0:
+            raise KeyboardInterrupt("simulated crash")
+        self.n -= 1
+        return self.sink.write(*a, **k)
+
+
+def test_rounds_add_the_triangle_closing_pairs_until_nothing_new_is_verified(chain_db, tmp_path):
+    db = tmp_path / "db.db"
+    shutil.copyfile(chain_db, db)
+    rep = _run(db)
+    names = sorted(n for n in _names(db))
+    shortlist = _fs(sequential_pairs(names, 1))
+    tried, verified = read_verified_graph(db)
+    stages = rep.stages
+    assert stages[0]["stage"] == "shortlist" and stages[0]["pairs"] == len(shortlist)
+    assert stages[1]["stage"] == "expansion 1"
+    # round 1 = exactly the triangle-closing pairs of the shortlist's verified graph
+    v0 = {p for p in shortlist if p in verified}
+    want1 = _fs(triangle_candidates(names, shortlist, v0)[0])
+    assert stages[1]["pairs"] == len(want1) > 0
+    # at the end no triangle-closing pair is left untried, or the last round verified nothing
+    left = triangle_candidates(names, tried, verified)[0]
+    assert not left or stages[-1]["verified"] == 0
+    assert rep.expansion["rounds"] == len(stages) - 1 and rep.tried_pairs == len(tried)
+    assert "expansion" in rep.summary()
+    # the isolated view is never verified with anything: its pairs stay out of the expansion
+    iso = names[-1]
+    assert not any(iso in p for p in verified)
+
+
+def _names(db):
+    con = sqlite3.connect(db)
+    try:
+        return [n for (n,) in con.execute("SELECT name FROM images")]
+    finally:
+        con.close()
+
+
+@pytest.mark.parametrize("crash_after", [2, 8])
+def test_a_crash_in_any_stage_then_a_rerun_gives_the_uninterrupted_database(chain_db, tmp_path, crash_after):
+    ref = tmp_path / "ref.db"
+    shutil.copyfile(chain_db, ref)
+    _run(ref, dict(max_pairs_per_round=2))  # capped rounds: the replayed round lists matter
+    db = tmp_path / "db.db"
+    shutil.copyfile(chain_db, db)
+    with pytest.raises(KeyboardInterrupt):
+        _run(db, dict(max_pairs_per_round=2), sink_wrapper=lambda s: _DieAfter(s, crash_after))
+    _run(db, dict(max_pairs_per_round=2))
+    assert _rows(db) == _rows(ref)
+
+
+def test_max_rounds_zero_is_the_shortlist_only_and_caps_are_reported(chain_db, tmp_path):
+    db = tmp_path / "db.db"
+    shutil.copyfile(chain_db, db)
+    rep = _run(db, dict(max_rounds=0))
+    assert [s["stage"] for s in rep.stages] == ["shortlist"] and rep.expansion["stopped"] == "max_rounds=0"
+    db2 = tmp_path / "db2.db"
+    shutil.copyfile(chain_db, db2)
+    rep2 = _run(db2, dict(max_pairs_per_round=1, max_rounds=2))
+    assert rep2.expansion["rounds"] <= 2
+    assert all(s["pairs"] <= 1 for s in rep2.stages[1:])
+    assert rep2.expansion["capped_rounds"] == sum(bool(s["capped"]) for s in rep2.stages[1:]) >= 1
+
+
+def test_bad_settings_and_sinks_are_config_errors(chain_db, tmp_path):
+    with pytest.raises(ConfigError):
+        ExpansionConfig(max_rounds=-1)
+    with pytest.raises(ConfigError):
+        ExpansionConfig(max_pairs_per_round=0)
+
+    class H5Like:
+        kind = "h5"
+        path = tmp_path / "m.h5"
+
+    from guidedmatch.collection.sources import ColmapSource
+
+    with pytest.raises(ConfigError, match="COLMAP database"):
+        match_collection_expanded(ColmapSource(chain_db), [], H5Like(), CFG)
+
+
+def test_cli_expand_rounds_without_expansion_is_exit_2(chain_db, tmp_path, capsys):
+    db = tmp_path / "db.db"
+    shutil.copyfile(chain_db, db)
+    rc = cli_main(["colmap", str(db), "--pairs", "sequential:1", "--expand-rounds", "2", "--no-progress"])
+    assert rc == 2 and "--expand-rounds needs" in capsys.readouterr().err
+
+
+def test_cli_retrieval_expands_by_default_and_no_expand_does_not(chain_db, tmp_path, capsys):
+    db = tmp_path / "db.db"
+    shutil.copyfile(chain_db, db)
+    assert cli_main(["colmap", str(db), "--pairs", "retrieval:1", "--no-progress", "--log", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "retrieval  :" in out and "shortlist  :" in out and "expansion  :" in out
+    db2 = tmp_path / "db2.db"
+    shutil.copyfile(chain_db, db2)
+    assert cli_main(["colmap", str(db2), "--pairs", "retrieval:1", "--no-expand", "--no-progress", "--log",
+                     "none"]) == 0
+    assert "expansion" not in capsys.readouterr().out
