@@ -365,14 +365,16 @@ def test_sfm_global_mapper(rendered, tmp_path):
     assert max(r["error_deg"] for r in ev.per_pair) <= 3.0, ev.summary()
 
 
-def test_two_unrelated_scenes_give_two_models(tmp_path):
-    """Two rendered scenes in one folder: two models, each holding the views of one scene only; both reported."""
+@pytest.mark.parametrize("pairs", ["auto", "retrieval:2"])
+def test_two_unrelated_scenes_give_two_models(tmp_path, pairs):
+    """Two rendered scenes in one folder: two models, each holding the views of one scene only; both reported --
+    with every pair (auto: 8 images) and with retrieval pairs (2 per image) + the verified expansion."""
     mv = pytest.importorskip("guidedmatch.testing.multiview")
     for sub, seed in (("a", 3), ("b", 4)):
         mv.write_views(mv.make_multiview(n_views=4, size=(640, 480), seed=seed, isolated=False, spacing=1.6),
                        tmp_path / "images" / sub)
     proc = run_cli("sfm", tmp_path / "images", tmp_path / "out", "--detector", "ours:sift", "--workers", "0",
-                   "--threads", "2", "--quiet")
+                   "--threads", "2", "--quiet", "--pairs", pairs)
     assert proc.returncode == 0, proc.stderr
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     assert len(rep["models"]) == 2, rep["summary"]
@@ -382,3 +384,6 @@ def test_two_unrelated_scenes_give_two_models(tmp_path):
     assert "2 models: 4 + 4 of 8 images" in rep["summary"]
     assert (tmp_path / "out" / "sparse" / "1" / "images.bin").is_file()
     assert "sparse/1" in (tmp_path / "out" / "report.md").read_text()
+    tried = rep["stages"]["matching"]["pairs"] if "stages" in rep else None
+    if pairs != "auto" and tried is not None:   # the shortlist tries fewer than all 28 pairs
+        assert tried < 28

@@ -185,7 +185,9 @@ class StagedReport:
         return t
 
     def to_dict(self) -> dict:
-        return dict(stages=self.stages, expansion=self.expansion, wall_s=self.wall_s,
+        """JSON-ready; has the keys of ``CollectionReport.to_dict`` (done, skipped, failed, totals) plus the stages."""
+        return dict(done=self.done, skipped=self.skipped, totals=self.totals,
+                    stages=self.stages, expansion=self.expansion, wall_s=self.wall_s,
                     verified_pairs=self.verified_pairs, tried_pairs=self.tried_pairs,
                     failed=[dict(pair=list(p), reason=r) for p, r in self.failed],
                     reports=[dict(r.to_dict(), per_pair=[]) for r in self.reports])
