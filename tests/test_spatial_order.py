@@ -488,4 +488,6 @@ def test_window_fit_kernel_equals_the_numpy_computation(n, shuffled, seed, bound
         np.testing.assert_array_equal(x, y)
     assert got.k_hat == ref.k_hat
     assert got.n_good == pytest.approx(ref.n_good, rel=1e-12, abs=1e-12)
-    np.testing.assert_allclose(got.prob, ref.prob, rtol=1e-11, atol=1e-13)
+    # the kernel and NumPy sum the per-interval terms in different orders: float64 rounding, a few 1e-11 relative
+    # at most seen (n=137, seed=1, num_beta=8: 3.2e-11); 1e-9 still fails any real difference in the model
+    np.testing.assert_allclose(got.prob, ref.prob, rtol=1e-9, atol=1e-13)
