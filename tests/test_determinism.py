@@ -361,7 +361,7 @@ def test_same_results_on_a_dask_worker(pair_sets):
     import cloudpickle
     from distributed import Client, LocalCluster
 
-    from guidedmatch.collection.engine import _SINGLE_THREAD_ENV
+    from guidedmatch.collection.dask_backend import _SINGLE_THREAD_ENV
 
     _, views = pair_sets
     names = list(views)
