@@ -199,3 +199,207 @@ def _judged(db_path: Path, model: Path, ok_px: float = 3.0) -> dict:
             e = judge.errors(names[i1], names[i2], m, kps[i1], kps[i2])
             out[(i1, i2)] = m[~(e > ok_px)]   # unlabelled (NaN) kept: the judge cannot see them
     return out
+
+
+# --------------------------------------------------------------------------- measurements
+INLIER_BINS = (15, 30, 100, 300)
+ANGLE_BINS = (0, 30, 60, 90, 180)
+
+
+def _bin(v, edges):
+    for lo, hi in zip(edges[:-1], list(edges[1:])):
+        if lo <= v < hi:
+            return f"{lo}-{hi}"
+    return f">={edges[-1]}" if v >= edges[-1] else f"<{edges[0]}"
+
+
+def rejected_pairs_table(colmap_pairs: list[dict], our_pairs: list[dict], true_share: float = 0.5) -> dict:
+    """The pairs COLMAP verifies (``pairs.json`` rows of :func:`.bench_accuracy.pair_table`) that we do not, by
+    COLMAP's inlier count and by the reference cameras' relative rotation; a pair is *true* when at least
+    ``true_share`` of COLMAP's inliers (and >= 15) lie within 4 px of the reference epipolar lines.
+
+    >>> c = [dict(name1="a", name2="b", inliers=40, epi_ok=0, angle_deg=10.0),
+    ...      dict(name1="a", name2="c", inliers=120, epi_ok=110, angle_deg=95.0), dict(name1="b", name2="c",
+    ...      inliers=50, epi_ok=50, angle_deg=5.0)]
+    >>> t = rejected_pairs_table(c, [dict(name1="b", name2="c", inliers=80, epi_ok=80, angle_deg=5.0)])
+    >>> t["rejected"], t["rejected_true"], t["by_inliers"]["30-100"], t["by_angle"]["90-180"]
+    (2, 1, {'pairs': 1, 'true': 0}, {'pairs': 1, 'true': 1})
+    """
+    ours = {(p["name1"], p["name2"]) for p in our_pairs}
+    rej = [p for p in colmap_pairs if (p["name1"], p["name2"]) not in ours]
+    is_true = [p["epi_ok"] >= max(15, true_share * p["inliers"]) for p in rej]
+    out = {"colmap_verified": len(colmap_pairs), "ours_verified": len(our_pairs), "rejected": len(rej),
+           "rejected_true": int(sum(is_true)), "by_inliers": {}, "by_angle": {},
+           "pairs": [dict(p, true=bool(t)) for p, t in zip(rej, is_true)],
+           "ours_only": len(ours - {(p["name1"], p["name2"]) for p in colmap_pairs})}
+    for key, edges, field in (("by_inliers", INLIER_BINS, "inliers"), ("by_angle", ANGLE_BINS, "angle_deg")):
+        for p, t in zip(rej, is_true):
+            b = out[key].setdefault(_bin(p[field], edges), {"pairs": 0, "true": 0})
+            b["pairs"] += 1
+            b["true"] += int(t)
+    return out
+
+
+def track_stats(model: Path, long_range: int | None = None) -> dict:
+    """Tracks of a model: points, mean / median track length, median reprojection error, and how the image pairs
+    ``long_range`` or more apart in name order (default a quarter of the registered images) are tied: share of
+    points seen by such a pair, median co-visible points over those pairs."""
+    import pycolmap
+    from scipy import sparse
+
+    rec = pycolmap.Reconstruction(str(model))
+    ids = sorted(rec.reg_image_ids(), key=lambda i: rec.image(i).name)
+    pos = {i: k for k, i in enumerate(ids)}
+    n = len(ids)
+    L = long_range or max(2, n // 4)
+    rows, cols, lens, errs, spans = [], [], [], [], []
+    for k, (pid, p) in enumerate(rec.points3D.items()):
+        imgs = sorted({pos[e.image_id] for e in p.track.elements if e.image_id in pos})
+        rows += [k] * len(imgs)
+        cols += imgs
+        lens.append(p.track.length())
+        errs.append(p.error)
+        spans.append(imgs[-1] - imgs[0] if imgs else 0)
+    B = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(lens), n))
+    C = (B.T @ B).toarray()
+    iu = np.triu_indices(n, L)
+    far = C[iu]
+    return {"images": n, "points": len(lens), "mean_track_length": float(np.mean(lens)) if lens else 0.0,
+            "median_track_length": float(np.median(lens)) if lens else 0.0,
+            "median_reprojection_px": float(np.median(errs)) if errs else float("nan"),
+            "long_range": L, "points_spanning_long_range": float(np.mean(np.array(spans) >= L)) if spans else 0.0,
+            "long_range_pairs": int(len(far)), "long_range_pairs_tied": int((far > 0).sum()),
+            "median_covisible_long_range": float(np.median(far)) if len(far) else 0.0}
+
+
+def added_stats(cache: Path, px: float = 4.0) -> dict:
+    """Our inliers that COLMAP's matcher did not verify, against those both verified, on the pairs both verified:
+    reference epipolar distance (px; share within ``px`` and within 1 px), descriptor distance (L2 of the uint8
+    SIFT rows), scale disagreement (``|log2(s1 / s2) - pair median|``) and distance from the image centre."""
+    import pycolmap
+
+    from .bench_accuracy import distortion, epipolar_distances, reference_cameras, undistort
+
+    root, scene = _scene_of(cache)
+    ref, dist = reference_cameras(root, scene), distortion(root, scene)
+    ours, theirs = read_geometries(cache / "ours" / "database.db"), read_geometries(cache / "colmap" / "database.db")
+    db = pycolmap.Database.open(str(cache / "ours" / "database.db"))
+    try:
+        names = {img.image_id: img.name for img in db.read_all_images()}
+        raw = {i: np.asarray(db.read_keypoints(i), np.float64) for i in names}
+        desc = {i: np.asarray(db.read_descriptors(i).data, np.float32) for i in names}
+    finally:
+        db.close()
+    und = {i: undistort(k, ref[names[i]].K, dist) for i, k in raw.items()}
+    scale = {i: np.sqrt(np.abs(k[:, 2] * k[:, 5] - k[:, 3] * k[:, 4])) if k.shape[1] >= 6 else np.ones(len(k))
+             for i, k in raw.items()}
+    acc = {"shared": [], "added": [], "colmap_only": []}
+    for p in set(ours) & set(theirs):
+        i1, i2 = p
+        sets = {"shared": intersect_inliers(ours[p], theirs[p]),
+                "added": ours[p][~np.isin(_keys(ours[p]), _keys(theirs[p]))],
+                "colmap_only": theirs[p][~np.isin(_keys(theirs[p]), _keys(ours[p]))]}
+        lr_all = np.log2(scale[i1][ours[p][:, 0]] / scale[i2][ours[p][:, 1]])
+        med = float(np.median(lr_all)) if len(lr_all) else 0.0
+        for k, m in sets.items():
+            if not len(m):
+                continue
+            e = epipolar_distances(und[i1][m[:, 0]], und[i2][m[:, 1]], ref[names[i1]], ref[names[i2]])
+            d = np.linalg.norm(desc[i1][m[:, 0]] - desc[i2][m[:, 1]], axis=1)
+            s = np.abs(np.log2(scale[i1][m[:, 0]] / scale[i2][m[:, 1]]) - med)
+            acc[k].append(np.c_[e, d, s])
+    out = {}
+    for k, parts in acc.items():
+        a = np.concatenate(parts) if parts else np.zeros((0, 3))
+        out[k] = {"inliers": int(len(a)), "epi_within_px": float(np.mean(a[:, 0] <= px)) if len(a) else None,
+                  "epi_within_1px": float(np.mean(a[:, 0] <= 1.0)) if len(a) else None,
+                  "epi_median_px": float(np.median(a[:, 0])) if len(a) else None,
+                  "descriptor_median": float(np.median(a[:, 1])) if len(a) else None,
+                  "scale_off_median": float(np.median(a[:, 2])) if len(a) else None,
+                  "scale_off_gt_1": float(np.mean(a[:, 2] > 1.0)) if len(a) else None}
+    return out
+
+
+def analyse(cache_scene: Path, methods=("colmap", "ours", "ours+cap")) -> dict:
+    """Every measurement of one scene's cache: rejected pairs, inlier statistics, tracks of each method's models."""
+    import json
+
+    pairs = {m: json.loads((cache_scene / m.replace("+", "_") / "pairs.json").read_text())
+             for m in ("colmap", "ours")}
+    out = {"rejected": rejected_pairs_table(pairs["colmap"], pairs["ours"]), "added": added_stats(cache_scene),
+           "tracks": {}}
+    for m in methods:
+        for seed_dir in sorted((cache_scene / m.replace("+", "_")).glob("seed*")):
+            model = seed_dir / "sparse" / "0"
+            if model.is_dir():
+                out["tracks"].setdefault(m, {})[seed_dir.name] = track_stats(model)
+    return out
+
+
+def analysis_markdown(scene: str, a: dict) -> str:
+    """The measurements of :func:`analyse` as markdown tables."""
+    r = a["rejected"]
+    out = [f"## {scene}", "",
+           f"Pairs COLMAP verifies: {r['colmap_verified']}; we verify: {r['ours_verified']}; COLMAP verifies and we do "
+           f"not: **{r['rejected']}**, of them true by the reference cameras (>= half of COLMAP's inliers, and >= 15, "
+           f"within 4 px of the reference epipolar lines): **{r['rejected_true']}**; we verify and COLMAP does not: "
+           f"{r['ours_only']}.", "", "| COLMAP's inliers | pairs | true | | camera angle (deg) | pairs | true |",
+           "|---|---|---|---|---|---|---|"]
+    bi, ba_ = list(r["by_inliers"].items()), list(r["by_angle"].items())
+    for k in range(max(len(bi), len(ba_))):
+        left = f"{bi[k][0]} | {bi[k][1]['pairs']} | {bi[k][1]['true']}" if k < len(bi) else " | | "
+        right = f"{ba_[k][0]} | {ba_[k][1]['pairs']} | {ba_[k][1]['true']}" if k < len(ba_) else " | | "
+        out.append(f"| {left} | | {right} |")
+    out += ["", "Inliers on the pairs both verify (reference epipolar distance, undistorted; descriptor L2; scale "
+            "disagreement |log2(s1/s2) - pair median|):", "",
+            "| inliers | count | within 4 px | within 1 px | median epipolar px | median descriptor distance | "
+            "median scale disagreement | scale off > 2x |", "|---|---|---|---|---|---|---|---|"]
+    for k, v in a["added"].items():
+        if not v["inliers"]:
+            continue
+        out.append(f"| {k} | {v['inliers']:,} | {100 * v['epi_within_px']:.1f} % | {100 * v['epi_within_1px']:.1f} % | "
+                   f"{v['epi_median_px']:.2f} | {v['descriptor_median']:.0f} | {v['scale_off_median']:.2f} | "
+                   f"{100 * v['scale_off_gt_1']:.1f} % |")
+    out += ["", "Tracks of the models (median over seeds):", "",
+            "| method | points | mean track length | median reprojection px | points spanning >= L images | "
+            "pairs >= L apart tied / all | median co-visible points of those pairs |", "|---|---|---|---|---|---|---|"]
+    for m, seeds in a["tracks"].items():
+        v = list(seeds.values())
+
+        def md(k):
+            return float(np.median([x[k] for x in v]))
+        out.append(f"| {m} | {md('points'):,.0f} | {md('mean_track_length'):.2f} | {md('median_reprojection_px'):.3f} "
+                   f"| {100 * md('points_spanning_long_range'):.1f} % (L={v[0]['long_range']}) | "
+                   f"{md('long_range_pairs_tied'):.0f} / {v[0]['long_range_pairs']} | {md('median_covisible_long_range'):.0f} |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv=None) -> int:
+    import argparse
+    import json
+
+    from .meta import write_json
+
+    p = argparse.ArgumentParser(prog="python -m guidedmatch.evaluation.accuracy_analysis",
+                                description="measurements of the accuracy benchmark's cached scenes")
+    p.add_argument("--scenes", default="Herz-Jesus-P8,Herz-Jesus-P25,buddha,fox")
+    p.add_argument("--cache", default="/work/cache/accuracy")
+    p.add_argument("--out", default="benchmarks/results/accuracy")
+    args = p.parse_args(argv)
+    res, md = {}, ["# What our match sets give the mapper, per scene", ""]
+    for scene in args.scenes.split(","):
+        c = Path(args.cache) / scene
+        if not (c / "ours" / "pairs.json").is_file() or not (c / "colmap" / "pairs.json").is_file():
+            print(f"{scene}: not benchmarked yet, skipped")
+            continue
+        res[scene] = analyse(c)
+        md.append(analysis_markdown(scene, res[scene]))
+    out = Path(args.out)
+    write_json(out / "analysis.json", {s: {k: v for k, v in a.items()} for s, a in res.items()})
+    (out / "analysis.md").write_text("\n".join(md))
+    print("\n".join(md))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
