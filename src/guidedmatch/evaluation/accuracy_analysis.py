@@ -13,7 +13,11 @@ whose two-view geometries are rewritten, then mapped and scored like the base me
   (a multi-view oracle);
 * ``ours+rejected``: ours plus COLMAP's geometries of the pairs COLMAP verified and we did not (our verdict
   overruled);
-* ``colmap-epi``: COLMAP's inliers within 4 px of the reference epipolar lines (the oracle on the peer's side).
+* ``colmap-epi``: COLMAP's inliers within 4 px of the reference epipolar lines (the oracle on the peer's side);
+* ``ours-f1``: our inliers within 1 px of the epipolar lines of the pair's own fundamental matrix (no oracle: a
+  tighter two-view threshold);
+* ``ours-scale``: our inliers whose keypoint scale ratio is within a factor 2^0.5 of the pair's median ratio (no
+  oracle).
 
 :func:`rejected_pairs_table` counts the pairs COLMAP verifies and we do not, by inlier count and camera angle, and
 says how many of their inliers agree with the reference; :func:`track_stats` describes a model's tracks;
@@ -36,6 +40,8 @@ VARIANTS = {
     "ours-judged": ("ours", "our inliers consistent (<= 3 px) with COLMAP's seed-0 model (oracle)"),
     "ours+rejected": ("ours", "plus COLMAP's geometry of every pair COLMAP verified and we did not"),
     "colmap-epi": ("colmap", "COLMAP's inliers within 4 px of the reference epipolar lines (oracle)"),
+    "ours-f1": ("ours", "our inliers within 1 px of the epipolar lines of our own two-view F"),
+    "ours-scale": ("ours", "our inliers whose scale ratio is within 2^0.5 of the pair's median ratio"),
 }
 
 
@@ -117,7 +123,8 @@ def union_free(base: np.ndarray, extra: np.ndarray) -> np.ndarray:
 
 
 def _epi_filter(db_path: Path, cache: Path, px: float) -> dict:
-    from .bench_accuracy import distortion, epipolar_distances, reference_cameras, undistort
+    from .bench_accuracy import distortion, reference_cameras
+    from .consistency import epipolar_distances, undistort
     import pycolmap
 
     root, scene = _scene_of(cache)
@@ -173,6 +180,8 @@ def make_variant(method: str, cache: Path, db: Path, threads: int) -> dict:
     elif method in ("ours-epi", "colmap-epi", "ours-epi1"):
         new = _epi_filter(db, cache, 1.0 if method == "ours-epi1" else 4.0)
         donor = None
+    elif method in ("ours-f1", "ours-scale"):
+        new, donor = _self_filter(db, method), None
     elif method == "ours-judged":
         new, donor = _judged(db, cache / "colmap" / "seed0" / "sparse" / "0"), None
     info = rewrite_geometries(db, new, donor)
@@ -278,7 +287,8 @@ def added_stats(cache: Path, px: float = 4.0) -> dict:
     SIFT rows), scale disagreement (``|log2(s1 / s2) - pair median|``) and distance from the image centre."""
     import pycolmap
 
-    from .bench_accuracy import distortion, epipolar_distances, reference_cameras, undistort
+    from .bench_accuracy import distortion, reference_cameras
+    from .consistency import epipolar_distances, undistort
 
     root, scene = _scene_of(cache)
     ref, dist = reference_cameras(root, scene), distortion(root, scene)
@@ -403,3 +413,55 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _self_filter(db_path: Path, method: str, f_px: float = 1.0, log2_scale: float = 0.5) -> dict:
+    """``ours-f1`` / ``ours-scale`` (see the module docstring): filters that need no reference."""
+    import pycolmap
+
+    from .consistency import epipolar_distances
+    from .poses import CameraPose
+
+    db = pycolmap.Database.open(str(db_path))
+    out = {}
+    try:
+        kps: dict[int, np.ndarray] = {}
+
+        def kp(i):
+            if i not in kps:
+                kps[i] = np.asarray(db.read_keypoints(i), np.float64)
+            return kps[i]
+
+        eye = CameraPose(np.eye(3), np.zeros(3), np.eye(3))
+        for (i1, i2), m in read_geometries(db_path).items():
+            a, b = kp(i1)[m[:, 0]], kp(i2)[m[:, 1]]
+            if method == "ours-f1":
+                F = np.asarray(db.read_two_view_geometry(i1, i2).F, np.float64)
+                if not np.isfinite(F).all() or np.abs(F).max() == 0:
+                    out[(i1, i2)] = m   # no F (e.g. a homography only): kept as it is
+                    continue
+                d = _f_distances(a, b, F)
+                out[(i1, i2)] = m[d <= f_px]
+            else:
+                s1 = np.sqrt(np.abs(a[:, 2] * a[:, 5] - a[:, 3] * a[:, 4]))
+                s2 = np.sqrt(np.abs(b[:, 2] * b[:, 5] - b[:, 3] * b[:, 4]))
+                lr = np.log2(s1 / s2)
+                out[(i1, i2)] = m[np.abs(lr - np.median(lr)) <= log2_scale]
+    finally:
+        db.close()
+    return out
+
+
+def _f_distances(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Max of the two point-to-epipolar-line distances (px) under ``F`` (``x2^T F x1 = 0``).
+
+    >>> F = np.array([[0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])   # a pure x translation: lines are image rows
+    >>> _f_distances(np.array([[5.0, 7.0]]), np.array([[9.0, 9.5]]), F).tolist()
+    [2.5]
+    """
+    h1 = np.c_[x1[:, :2], np.ones(len(x1))]
+    h2 = np.c_[x2[:, :2], np.ones(len(x2))]
+    l2, l1 = h1 @ F.T, h2 @ F
+    num = np.abs(np.sum(h2 * l2, axis=1))
+    return np.maximum(num / np.maximum(np.hypot(l2[:, 0], l2[:, 1]), 1e-12),
+                      num / np.maximum(np.hypot(l1[:, 0], l1[:, 1]), 1e-12))

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .consistency import EPI_WRONG_PX, epipolar_distances, pair_table, undistort
 from .poses import (CameraPose, aligned_centre_errors, error_by_sequence_distance, evaluate_poses,
                     poses_from_reconstruction, read_cameras_txt, read_strecha_cameras)
 
@@ -57,7 +58,6 @@ SCENES = {
 BASE_METHODS = ("colmap", "ours", "ours+cap")
 SEEDS = (0, 1, 2)
 CAP = 1000  # inliers per pair of ``ours+cap`` (guidedmatch sfm's default)
-EPI_WRONG_PX = 4.0  # an inlier farther than this from a reference epipolar line is wrong
 
 
 def _say(text: str) -> None:
@@ -266,77 +266,6 @@ def mapping(method: str, cache: Path, image_dir: Path, seed: int, threads: int, 
 
 
 # --------------------------------------------------------------------------- judges
-def epipolar_distances(kp1: np.ndarray, kp2: np.ndarray, cam1: CameraPose, cam2: CameraPose) -> np.ndarray:
-    """``(M,)`` max of the two point-to-epipolar-line distances (px) of matched pixel positions ``kp1``, ``kp2``
-    ``(M, 2)`` under the reference cameras (pinhole; undistort first).
-
-    >>> K = np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]])
-    >>> a, b = CameraPose(np.eye(3), np.zeros(3), K), CameraPose(np.eye(3), np.array([-1.0, 0, 0]), K)
-    >>> epipolar_distances(np.array([[50.0, 50], [50, 50]]), np.array([[10.0, 50], [10, 53]]), a, b).round(6).tolist()
-    [0.0, 3.0]
-    """
-    from .poses import relative_pose
-
-    R, t = relative_pose(cam1, cam2)
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    F = np.linalg.inv(cam2.K).T @ tx @ R @ np.linalg.inv(cam1.K)
-    x1 = np.c_[kp1[:, :2], np.ones(len(kp1))]
-    x2 = np.c_[kp2[:, :2], np.ones(len(kp2))]
-    l2 = x1 @ F.T   # lines in image 2
-    l1 = x2 @ F     # lines in image 1
-    num = np.abs(np.sum(x2 * l2, axis=1))
-    d2 = num / np.maximum(np.hypot(l2[:, 0], l2[:, 1]), 1e-12)
-    d1 = num / np.maximum(np.hypot(l1[:, 0], l1[:, 1]), 1e-12)
-    return np.maximum(d1, d2)
-
-
-def undistort(kp: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
-    """Pixel positions without the lens distortion ``dist`` (OpenCV ``k1 k2 p1 p2``), same ``K``."""
-    if dist is None or len(kp) == 0:
-        return kp[:, :2]
-    import cv2
-
-    return cv2.undistortPoints(np.ascontiguousarray(kp[:, :2], np.float64).reshape(-1, 1, 2), K, dist,
-                               P=K).reshape(-1, 2)
-
-
-def pair_table(db_path: Path, ref: dict[str, CameraPose], dist: np.ndarray | None, px: float = EPI_WRONG_PX
-               ) -> list[dict]:
-    """Per verified pair of a database: ``name1, name2, inliers, epi_ok`` (inliers within ``px`` of the reference
-    epipolar lines) and ``angle_deg`` (relative rotation of the reference cameras)."""
-    import pycolmap
-
-    from .poses import relative_pose, rotation_error_deg
-
-    db = pycolmap.Database.open(str(db_path))
-    rows = []
-    try:
-        names = {img.image_id: img.name for img in db.read_all_images()}
-        kps: dict[int, np.ndarray] = {}
-
-        def kp(i):
-            if i not in kps:
-                kps[i] = undistort(np.asarray(db.read_keypoints(i), np.float64), ref[names[i]].K, dist)
-            return kps[i]
-
-        pids, counts = db.read_two_view_geometry_num_inliers()
-        for pid, n in zip(pids, counts):
-            if int(n) == 0:
-                continue
-            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
-            a, b = names[i1], names[i2]
-            if a not in ref or b not in ref:
-                continue
-            m = np.asarray(db.read_two_view_geometry(i1, i2).inlier_matches, np.int64).reshape(-1, 2)
-            d = epipolar_distances(kp(i1)[m[:, 0]], kp(i2)[m[:, 1]], ref[a], ref[b])
-            R, _ = relative_pose(ref[a], ref[b])
-            rows.append({"name1": min(a, b), "name2": max(a, b), "inliers": len(m), "epi_ok": int((d <= px).sum()),
-                         "angle_deg": rotation_error_deg(R, np.eye(3))})
-    finally:
-        db.close()
-    return rows
-
-
 def judge(method: str, cache: Path, ref, dist, redo: bool = False) -> dict:
     """Wrong inliers of a method's database by COLMAP's seed-0 model and by the reference epipolar geometry
     (cached in ``judge.json``; the per-pair table in ``pairs.json``)."""
@@ -561,20 +490,23 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
     return res
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenes", default="Herz-Jesus-P8,Herz-Jesus-P25,buddha,fox",
-                   help="comma-separated scenes (default: all with poses: " + ", ".join(SCENES) + ")")
-    p.add_argument("--methods", default=",".join(BASE_METHODS), help="comma-separated methods (default "
-                   + ",".join(BASE_METHODS) + "; analysis variants: see accuracy_analysis.VARIANTS)")
-    p.add_argument("--seeds", default="0,1,2", help="mapper seeds (IncrementalPipelineOptions.random_seed)")
-    p.add_argument("--threads", type=int, default=2, help="threads of COLMAP's matcher and mapper (default 2)")
+def add_arguments(p: argparse.ArgumentParser, standalone: bool = False) -> None:
+    """The options of this benchmark; ``standalone`` adds those that ``guidedmatch bench`` already has (``--methods``,
+    ``--threads``, ``--repeats``, ``--data``, ``--out``)."""
+    p.add_argument("--scenes", default=",".join(SCENES),
+                   help="accuracy: comma-separated scenes (default: all with poses: " + ", ".join(SCENES) + ")")
+    p.add_argument("--seeds", default="0,1,2", help="accuracy: mapper seeds (IncrementalPipelineOptions.random_seed)")
     p.add_argument("--cache", default=os.environ.get("GUIDEDMATCH_ACCURACY_CACHE", "/work/cache/accuracy"),
-                   help="where extracted / matched databases and models are kept between runs")
-    p.add_argument("--redo", default="", help="comma-separated methods to match and map again")
-    p.add_argument("--repeats", type=int, default=0, help="time COLMAP's and our matching again in N alternating "
-                   "fresh processes each and report the median (default 0: the one timed run of each)")
-    p.add_argument("--data", default=None, help="data root (default GUIDEDMATCH_DATA or ../shared/data)")
-    p.add_argument("--out", default="benchmarks/results/accuracy", help="output folder")
+                   help="accuracy: where extracted / matched databases and models are kept between runs")
+    p.add_argument("--redo", default="", help="accuracy: comma-separated methods to match and map again")
+    if standalone:
+        p.add_argument("--methods", default=None, help="comma-separated methods (default " + ",".join(BASE_METHODS)
+                       + "; analysis variants: see guidedmatch.evaluation.accuracy_analysis.VARIANTS)")
+        p.add_argument("--threads", type=int, default=2, help="threads of COLMAP's matcher and mapper (default 2)")
+        p.add_argument("--repeats", type=int, default=None, help="time COLMAP's and our matching again in N "
+                       "alternating fresh processes each and report the median (default: the one timed run of each)")
+        p.add_argument("--data", default=None, help="data root (default GUIDEDMATCH_DATA or ../shared/data)")
+        p.add_argument("--out", default="benchmarks/results", help="output folder (writes OUT/accuracy/)")
 
 
 def main(args) -> int:
@@ -590,7 +522,7 @@ def main(args) -> int:
         raise ConfigError(f"unknown scene(s) {bad}; known: {', '.join(SCENES)}")
     from .accuracy_analysis import VARIANTS
 
-    methods = [m for m in args.methods.split(",") if m]
+    methods = [m for m in (args.methods or ",".join(BASE_METHODS)).split(",") if m]
     bad = [m for m in methods if m not in BASE_METHODS and m not in VARIANTS]
     if bad:
         raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(BASE_METHODS + tuple(VARIANTS))}")
@@ -598,8 +530,8 @@ def main(args) -> int:
         seeds = [int(s) for s in args.seeds.split(",") if s]
     except ValueError:
         raise ConfigError(f"--seeds takes integers, got {args.seeds!r}") from None
-    res = run(root, Path(args.out), scenes, methods, seeds, args.threads, Path(args.cache),
-              redo=tuple(m for m in args.redo.split(",") if m), command="guidedmatch bench accuracy " + " ".join(sys.argv[1:]), repeats=args.repeats)
+    res = run(root, Path(args.out) / "accuracy", scenes, methods, seeds, args.threads, Path(args.cache),
+              redo=tuple(m for m in args.redo.split(",") if m), command="guidedmatch bench accuracy " + " ".join(sys.argv[1:]), repeats=args.repeats or 0)
     print(markdown_table(res["rows"]))
     return 0
 
@@ -609,6 +541,6 @@ if __name__ == "__main__":
 
     parser = argparse.ArgumentParser(prog="python -m guidedmatch.evaluation.bench_accuracy", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(parser)
+    add_arguments(parser, standalone=True)
     with colmap_log_level(1):
         sys.exit(main(parser.parse_args()))
