@@ -26,7 +26,6 @@ epipolar distance).
 """
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -77,8 +76,12 @@ def rewrite_geometries(db_path: Path, inliers: dict[tuple[int, int], np.ndarray]
             for (i1, i2), m in inliers.items():
                 m = np.ascontiguousarray(np.asarray(m, np.int64).reshape(-1, 2), dtype=np.uint32)
                 total += len(m)
-                if db.exists_two_view_geometry(i1, i2):
-                    g = db.read_two_view_geometry(i1, i2)
+                here = db.exists_two_view_geometry(i1, i2)
+                g = db.read_two_view_geometry(i1, i2) if here else None
+                if here and len(g.inlier_matches) == 0 and dd is not None and dd.exists_two_view_geometry(i1, i2):
+                    here = False   # a rejected pair (no inliers): take the donor's whole geometry, configuration too
+                    db.delete_two_view_geometry(i1, i2)
+                if here:
                     old = np.asarray(g.inlier_matches).reshape(-1, 2)
                     if old.shape == m.shape and np.array_equal(old, m):
                         continue
@@ -157,13 +160,13 @@ def make_variant(method: str, cache: Path, db: Path, threads: int) -> dict:
     analysis, not a method)."""
     import time
 
-    from .bench_accuracy import match
+    from .bench_accuracy import copy_database, match
 
     if method not in VARIANTS:
         raise KeyError(method)
     base = VARIANTS[method][0]
     brec = match(base, cache, threads)
-    shutil.copyfile(cache / base / "database.db", db)
+    copy_database(cache / base / "database.db", db)
     t0 = time.perf_counter()
     geoms = read_geometries(db)
     if method in ("ours-added", "colmap+added", "ours+rejected"):

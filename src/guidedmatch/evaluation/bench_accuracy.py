@@ -56,6 +56,9 @@ SCENES = {
             "favours COLMAP's own matches"),
 }
 BASE_METHODS = ("colmap", "ours", "ours+cap")
+#: ours, then :func:`guidedmatch.collection.rescue.rescue_pairs` (the rejected pairs a third view confirms), with and
+#: without the cap
+RESCUE_METHODS = ("ours+rescue", "ours+rescue+cap")
 SEEDS = (0, 1, 2)
 CAP = 1000  # inliers per pair of ``ours+cap`` (guidedmatch sfm's default)
 
@@ -156,6 +159,19 @@ def _timed_process(cmd: list[str], log: Path) -> float:
     return elapsed
 
 
+def copy_database(src: Path, dst: Path) -> None:
+    """Copy a SQLite database after folding its write-ahead log into it (a copy of the main file alone would miss
+    the log's pages)."""
+    import sqlite3
+
+    con = sqlite3.connect(str(src))
+    try:
+        con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    finally:
+        con.close()
+    shutil.copyfile(src, dst)
+
+
 _WARM: set = set()
 
 
@@ -202,12 +218,25 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB"}
     elif method == "ours+cap":
         base = match("ours", cache, threads)
-        shutil.copyfile(cache / "ours" / "database.db", db)
+        copy_database(cache / "ours" / "database.db", db)
         from ..collection.sinks import cap_two_view_inliers
 
         cap = cap_two_view_inliers(db, CAP)
         rec = {"method": method, "match_s": base["match_s"] + cap["time_s"], "cap": cap,
                "command": f"guidedmatch colmap DB --max-inliers-per-pair {CAP}"}
+    elif method in ("ours+rescue", "ours+rescue+cap"):
+        base = match("ours", cache, threads)
+        copy_database(cache / "ours" / "database.db", db)
+        from ..collection.rescue import RescueConfig, rescue_pairs
+
+        rescue = rescue_pairs(db, RescueConfig(num_threads=threads, matcher="colmap"))
+        rec = {"method": method, "match_s": base["match_s"] + rescue["time_s"], "rescue": rescue,
+               "command": "guidedmatch colmap DB, then collection.rescue.rescue_pairs(DB)"}
+        if method.endswith("+cap"):
+            from ..collection.sinks import cap_two_view_inliers
+
+            rec["cap"] = cap_two_view_inliers(db, CAP)
+            rec["match_s"] += rec["cap"]["time_s"]
     else:
         from .accuracy_analysis import make_variant
 
@@ -523,9 +552,10 @@ def main(args) -> int:
     from .accuracy_analysis import VARIANTS
 
     methods = [m for m in (args.methods or ",".join(BASE_METHODS)).split(",") if m]
-    bad = [m for m in methods if m not in BASE_METHODS and m not in VARIANTS]
+    known = BASE_METHODS + RESCUE_METHODS + tuple(VARIANTS)
+    bad = [m for m in methods if m not in known]
     if bad:
-        raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(BASE_METHODS + tuple(VARIANTS))}")
+        raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(known)}")
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s]
     except ValueError:
