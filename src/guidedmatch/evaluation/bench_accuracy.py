@@ -513,6 +513,15 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
               "from COLMAP's matches (seed 0), and > 4 px from the reference epipolar lines.", "",
               markdown_table(allrows), "", "Reference poses:", ""]
         md += [f"* {s}: {d}" for s, d in res["scenes"].items()]
+        from .accuracy_analysis import VARIANTS
+
+        legend = {"colmap": "pycolmap.match_exhaustive, COLMAP's defaults", "ours": "guidedmatch colmap DB (defaults)",
+                  "ours+cap": f"guidedmatch colmap DB --max-inliers-per-pair {CAP} (guidedmatch sfm's default)",
+                  "ours+rescue": "ours, then collection.rescue.rescue_pairs (rejected pairs matched by COLMAP's matcher, "
+                                 "kept when a third view confirms them)",
+                  "ours+rescue+cap": "ours+rescue, then the cap",
+                  **{k: f"analysis, not a method: {v[1]} (matching time: the base's)" for k, v in VARIANTS.items()}}
+        md += ["", "Methods:", ""] + [f"* `{m}`: {legend.get(m, '')}" for m in dict.fromkeys(r["method"] for r in allrows)]
         md += ["", "![drift](accuracy_drift.png)", ""]
         atomic_write_text(out / "accuracy.md", "\n".join(md))
         plot_drift([r for r in allrows if "error" not in r], out / "accuracy_drift.png")
