@@ -377,22 +377,22 @@ def markdown_table(rows: list[dict]) -> str:
     ...          "5": .9}, auc1_range=[.6, .7], verified_pairs=28, verified_inliers=1000, wrong_model=0.01,
     ...          wrong_epi=0.02, match_s=10.0, mapping_s=3.0, seeds=3, centre_rel=0.01)
     >>> markdown_table([r, dict(r, method="ours", verified_inliers=1500, match_s=4.0)]).splitlines()[-1]
-    '| s | ours | 8/8 | 0.200° | 0.700 (0.600-0.700) / 0.800 / 0.900 | 28 | 1,500 (1.50x) | 1.00 % | 2.00 % | 4.0 (0.40x) | 3.0 | 1.00 % |'
+    '| s | ours | 3 | 8/8 | 0.200° | 0.700 (0.600-0.700) / 0.800 / 0.900 | 28 | 1,500 (1.50x) | 1.00 % | 2.00 % | 4.0 (0.40x) | 3.0 | 1.00 % |'
     """
-    out = ["| scene | method | registered | median error | AUC@1° (min-max) / 2° / 5° | verified pairs | "
+    out = ["| scene | method | seeds | registered | median error | AUC@1° (min-max) / 2° / 5° | verified pairs | "
            "verified inliers (/ COLMAP) | wrong inliers: COLMAP's model | wrong inliers: reference epipolar | "
            "matching s (/ COLMAP) | mapping s | centre error / extent |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ref = next((x for x in rows if x["scene"] == r["scene"] and x["method"] == "colmap"), None)
         if "error" in r:
-            out.append(f"| {r['scene']} | {r['method']} | failed: {r['error']} |" + " |" * 9)
+            out.append(f"| {r['scene']} | {r['method']} | | failed: {r['error']} |" + " |" * 9)
             continue
         a = r["auc"]
         rng = r.get("auc1_range") or [float("nan")] * 2
         ri = f" ({r['verified_inliers'] / max(1, ref['verified_inliers']):.2f}x)" if ref else ""
         rt = f" ({r['match_s'] / ref['match_s']:.2f}x)" if ref and ref.get("match_s") else ""
-        out.append(f"| {r['scene']} | {r['method']} | {r['registered']:g}/{r['images']} | "
+        out.append(f"| {r['scene']} | {r['method']} | {r.get('seeds', '?')} | {r['registered']:g}/{r['images']} | "
                    f"{_f(r['median_error_deg'], '{:.3f}°')} | {a['1']:.3f} ({rng[0]:.3f}-{rng[1]:.3f}) / {a['2']:.3f} / "
                    f"{a['5']:.3f} | {r['verified_pairs']:,} | {r['verified_inliers']:,}{ri} | "
                    f"{_f(100 * r['wrong_model'] if r.get('wrong_model') is not None else None, '{:.2f} %')} | "
@@ -508,8 +508,8 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
               f"{res['meta'].get('cpu_model')}, {threads} threads; load average at each timed stage in accuracy.json "
               "(2 shared cores: compare times within a scene).", "",
               "Same pycolmap SIFT features (COLMAP defaults, 8192) for every method of a scene, same mapper "
-              "(pycolmap.incremental_mapping), median over mapper seeds " + ", ".join(map(str, seeds)) +
-              " of each column; AUC@1 range over the seeds in brackets. Wrong inliers: > 10 px from the model mapped "
+              "(pycolmap.incremental_mapping), median over the mapper seeds (0, 1, 2, ...; how many in the seeds column) "
+              "of each column; AUC@1 range over the seeds in brackets. Wrong inliers: > 10 px from the model mapped "
               "from COLMAP's matches (seed 0), and > 4 px from the reference epipolar lines.", "",
               markdown_table(allrows), "", "Reference poses:", ""]
         md += [f"* {s}: {d}" for s, d in res["scenes"].items()]
