@@ -224,6 +224,12 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         cap = cap_two_view_inliers(db, CAP)
         rec = {"method": method, "match_s": base["match_s"] + cap["time_s"], "cap": cap,
                "command": f"guidedmatch colmap DB --max-inliers-per-pair {CAP}"}
+    elif method.startswith("ours@"):   # ours with matcher settings: ours@max_unguided=0.1 (guidedmatch colmap --config)
+        copy_database(cache / "features.db", db)
+        warm_up(cache, mdir)
+        t = _timed_process([sys.executable, "-c", OURS_MATCH_SCRIPT, "colmap", str(db), "--no-progress", "--log", "none",
+                            "--config", method[5:]], mdir / "match.log")
+        rec = {"method": method, "match_s": t, "command": f"guidedmatch colmap DB --config {method[5:]}"}
     elif method in ("ours+rescue", "ours+rescue+cap"):
         base = match("ours", cache, threads)
         copy_database(cache / "ours" / "database.db", db)
@@ -428,8 +434,8 @@ def plot_drift(rows: list[dict], path: Path) -> Path:
 
 
 # --------------------------------------------------------------------------- driver
-def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int, redo=(), repeats: int = 0
-              ) -> list[dict]:
+def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int, redo=(), repeats: int = 0,
+              cached_only: bool = False) -> list[dict]:
     """Every stage of one scene (cached); one aggregated row per method."""
     image_dir, _ = scene_paths(root, scene)
     ref = reference_cameras(root, scene)
@@ -441,6 +447,11 @@ def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int,
     order = ["colmap"] + [m for m in methods if m != "colmap"]   # COLMAP's seed-0 model judges the others
     rows = []
     for method in order:
+        mdir = cache / method.replace("+", "_")
+        if cached_only and not ((mdir / "match.json").is_file() and
+                                all((mdir / f"seed{k}" / "map.json").is_file() for k in seeds)):
+            _say(f"[{scene}] {method}: not in the cache for seeds {seeds}, skipped (--cached-only)")
+            continue
         try:
             rec = match(method, cache, threads, redo=method in redo)
             _say(f"[{scene}] {method}: matched in {rec['match_s']:.1f} s{' (cached)' if rec['cached'] else ''}, "
@@ -470,7 +481,7 @@ def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int,
                    "traceback": traceback.format_exc()}
             _say(f"[{scene}] {method} failed: {row['error']}")
         rows.append(row)
-    if repeats:
+    if repeats and not (cached_only and len((_read_json(cache / "retime.json") or {}).get("ours", [])) < repeats):
         rt = retime(cache, repeats, threads)
         med = {w: float(np.median(rt[w])) for w in ("colmap", "ours")}
         for r in rows:
@@ -484,7 +495,8 @@ def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int,
 
 
 def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, threads: int = 2,
-        cache: Path = Path("/work/cache/accuracy"), redo=(), command: str = "", repeats: int = 0) -> dict:
+        cache: Path = Path("/work/cache/accuracy"), redo=(), command: str = "", repeats: int = 0,
+        cached_only: bool = False) -> dict:
     """Run the scenes; merge with the rows of an existing ``out/accuracy.json`` for other (scene, method); write
     ``accuracy.json``, ``accuracy.md``, ``accuracy_drift.png``."""
     from ..features import atomic_write_text
@@ -494,7 +506,7 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
     old = _read_json(out / "accuracy.json") or {}
     rows = []
     for scene in scenes:
-        rows += run_scene(root, scene, Path(cache), list(methods), list(seeds), threads, redo, repeats)
+        rows += run_scene(root, scene, Path(cache), list(methods), list(seeds), threads, redo, repeats, cached_only)
         done = {(r["scene"], r["method"]) for r in rows}
         kept = [r for r in old.get("rows", []) if (r["scene"], r["method"]) not in done]
         order = {s: i for i, s in enumerate(SCENES)}
@@ -520,6 +532,8 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
                   "ours+rescue": "ours, then collection.rescue.rescue_pairs (rejected pairs matched by COLMAP's matcher, "
                                  "kept when a third view confirms them)",
                   "ours+rescue+cap": "ours+rescue, then the cap",
+                  **{m: f"guidedmatch colmap DB --config {m[5:]}" for m in (r["method"] for r in allrows)
+                     if m.startswith("ours@")},
                   **{k: f"analysis, not a method: {v[1]} (matching time: the base's)" for k, v in VARIANTS.items()}}
         md += ["", "Methods:", ""] + [f"* `{m}`: {legend.get(m, '')}" for m in dict.fromkeys(r["method"] for r in allrows)]
         md += ["", "![drift](accuracy_drift.png)", ""]
@@ -536,6 +550,8 @@ def add_arguments(p: argparse.ArgumentParser, standalone: bool = False) -> None:
     p.add_argument("--seeds", default="0,1,2", help="accuracy: mapper seeds (IncrementalPipelineOptions.random_seed)")
     p.add_argument("--cache", default=os.environ.get("GUIDEDMATCH_ACCURACY_CACHE", "/work/cache/accuracy"),
                    help="accuracy: where extracted / matched databases and models are kept between runs")
+    p.add_argument("--cached-only", action="store_true", help="accuracy: tabulate what the cache holds; a method "
+                   "not matched and mapped there for every seed is skipped, nothing is computed")
     p.add_argument("--redo", default="", help="accuracy: comma-separated methods to match and map again")
     if standalone:
         p.add_argument("--methods", default=None, help="comma-separated methods (default " + ",".join(BASE_METHODS)
@@ -562,7 +578,7 @@ def main(args) -> int:
 
     methods = [m for m in (args.methods or ",".join(BASE_METHODS)).split(",") if m]
     known = BASE_METHODS + RESCUE_METHODS + tuple(VARIANTS)
-    bad = [m for m in methods if m not in known]
+    bad = [m for m in methods if m not in known and not m.startswith("ours@")]
     if bad:
         raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(known)}")
     try:
@@ -570,7 +586,7 @@ def main(args) -> int:
     except ValueError:
         raise ConfigError(f"--seeds takes integers, got {args.seeds!r}") from None
     res = run(root, Path(args.out) / "accuracy", scenes, methods, seeds, args.threads, Path(args.cache),
-              redo=tuple(m for m in args.redo.split(",") if m), command="guidedmatch bench accuracy " + " ".join(sys.argv[1:]), repeats=args.repeats or 0)
+              redo=tuple(m for m in args.redo.split(",") if m), command="guidedmatch bench accuracy " + " ".join(sys.argv[1:]), repeats=args.repeats or 0, cached_only=args.cached_only)
     print(markdown_table(res["rows"]))
     return 0
 
