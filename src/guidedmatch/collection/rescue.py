@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["RescueConfig", "rescue_pairs", "confirmed_by_third_view"]
+__all__ = ["RescueConfig", "rescue_pairs", "confirmed_by_third_view", "contradicted_by_third_view"]
 
 
 @dataclass(frozen=True)
@@ -81,6 +81,27 @@ def confirmed_by_third_view(a: int, b: int, inliers: np.ndarray, verified: dict,
         ka, kb = pa[m[:, 0]], pb[m[:, 1]]
         ok |= (ka >= 0) & (ka == kb)
     return ok
+
+
+def contradicted_by_third_view(a: int, b: int, inliers: np.ndarray, verified: dict, num_keypoints: dict
+                               ) -> np.ndarray:
+    """``(M,) bool``: inlier ``(i, j)`` of pair ``(a, b)`` is *contradicted*: for some third image ``c`` the verified
+    pairs ``a-c`` and ``b-c`` match ``i`` and ``j`` to two *different* keypoints of ``c`` (arguments as
+    :func:`confirmed_by_third_view`).
+
+    >>> v = {(1, 3): np.array([[0, 5], [1, 6]]), (2, 3): np.array([[4, 5], [7, 9]])}
+    >>> contradicted_by_third_view(1, 2, np.array([[0, 4], [1, 7], [0, 3]]), v, {1: 2, 2: 8, 3: 10}).tolist()
+    [False, True, False]
+    """
+    m = np.asarray(inliers, np.int64).reshape(-1, 2)
+    bad = np.zeros(len(m), bool)
+    neighbours = {k for p in verified for k in p if a in p} & {k for p in verified for k in p if b in p}
+    for c in neighbours - {a, b}:
+        pa = _partner(verified[(min(a, c), max(a, c))], num_keypoints[a], 0 if a < c else 1)
+        pb = _partner(verified[(min(b, c), max(b, c))], num_keypoints[b], 0 if b < c else 1)
+        ka, kb = pa[m[:, 0]], pb[m[:, 1]]
+        bad |= (ka >= 0) & (kb >= 0) & (ka != kb)
+    return bad
 
 
 def rescue_pairs(database: str | os.PathLike, config: RescueConfig | None = None) -> dict:

@@ -41,6 +41,8 @@ VARIANTS = {
     "colmap-epi": ("colmap", "COLMAP's inliers within 4 px of the reference epipolar lines (oracle)"),
     "ours-f1": ("ours", "our inliers within 1 px of the epipolar lines of our own two-view F"),
     "ours-scale": ("ours", "our inliers whose scale ratio is within 2^0.5 of the pair's median ratio"),
+    "ours-contra": ("ours", "our inliers minus those a third view contradicts (collection.rescue."
+                    "contradicted_by_third_view), no oracle"),
     "ours-3view": ("ours", "our inliers confirmed by a third view (collection.rescue.confirmed_by_third_view), no oracle"),
 }
 
@@ -184,8 +186,8 @@ def make_variant(method: str, cache: Path, db: Path, threads: int) -> dict:
     elif method in ("ours-epi", "colmap-epi", "ours-epi1"):
         new = _epi_filter(db, cache, 1.0 if method == "ours-epi1" else 4.0)
         donor = None
-    elif method == "ours-3view":
-        new, donor = _three_view(db), None
+    elif method in ("ours-3view", "ours-contra"):
+        new, donor = _three_view(db, contra=method == "ours-contra"), None
     elif method in ("ours-f1", "ours-scale"):
         new, donor = _self_filter(db, method), None
     elif method == "ours-judged":
@@ -497,12 +499,12 @@ def _f_distances(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -> np.ndarray:
                       num / np.maximum(np.hypot(l1[:, 0], l1[:, 1]), 1e-12))
 
 
-def _three_view(db_path: Path) -> dict:
+def _three_view(db_path: Path, contra: bool = False) -> dict:
     """``ours-3view``: every verified pair keeps the inliers a third view confirms (the same keypoint of some image
     ``c`` matched to both through verified pairs)."""
     import pycolmap
 
-    from ..collection.rescue import confirmed_by_third_view
+    from ..collection.rescue import confirmed_by_third_view, contradicted_by_third_view
 
     geoms = read_geometries(db_path)
     db = pycolmap.Database.open(str(db_path))
@@ -510,4 +512,6 @@ def _three_view(db_path: Path) -> dict:
         nkp = {img.image_id: int(db.read_keypoints(img.image_id).shape[0]) for img in db.read_all_images()}
     finally:
         db.close()
+    if contra:
+        return {(a, b): m[~contradicted_by_third_view(a, b, m, geoms, nkp)] for (a, b), m in geoms.items()}
     return {(a, b): m[confirmed_by_third_view(a, b, m, geoms, nkp)] for (a, b), m in geoms.items()}

@@ -428,7 +428,7 @@ def plot_drift(rows: list[dict], path: Path) -> Path:
         ax.set_title(scene)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("pose error vs distance in the sequence (3 mapper seeds pooled)")
+    fig.suptitle("pose error vs distance in the sequence (all mapper seeds of a row pooled; see the seeds column)")
     fig.tight_layout()
     return save_figure(fig, path)
 
