@@ -131,3 +131,35 @@ def test_a_pair_no_third_view_confirms_is_refused(matched_db, tmp_path):
     rep = rescue_pairs(path, RescueConfig(matcher="colmap", num_threads=1))
     assert rep["candidates"] == 0 and rep["kept"] == 0
     assert _geometries(path)[(a, b)] == 0
+
+
+def _slow_contradicted(a, b, inliers, verified):
+    def partner(x, c):
+        key = (min(x, c), max(x, c))
+        col = 0 if x < c else 1
+        return {int(r[col]): int(r[1 - col]) for r in verified.get(key, [])} if key in verified else None
+
+    out = []
+    images = {k for p in verified for k in p} - {a, b}
+    for i, j in inliers:
+        bad = False
+        for c in images:
+            pa, pb = partner(a, c), partner(b, c)
+            if pa is not None and pb is not None and i in pa and j in pb and pa[i] != pb[j]:
+                bad = True
+        out.append(bad)
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.integers(3, 6))
+def test_contradicted_by_third_view_matches_the_slow_reference(seed, n_images):
+    from guidedmatch.collection.rescue import contradicted_by_third_view
+
+    rng = np.random.default_rng(seed)
+    nkp = {i: int(rng.integers(5, 30)) for i in range(1, n_images + 1)}
+    verified = {(a, b): _one_to_one(rng, nkp[a], nkp[b], int(rng.integers(1, 20)))
+                for a in nkp for b in nkp if a < b and (a, b) != (1, 2) and rng.random() < 0.7}
+    inliers = _one_to_one(rng, nkp[1], nkp[2], 12)
+    got = contradicted_by_third_view(1, 2, inliers, verified, nkp)
+    assert got.tolist() == _slow_contradicted(1, 2, inliers, verified)
