@@ -17,7 +17,9 @@ whose two-view geometries are rewritten, then mapped and scored like the base me
 * ``ours-f1``: our inliers within 1 px of the epipolar lines of the pair's own fundamental matrix (no oracle: a
   tighter two-view threshold);
 * ``ours-scale``: our inliers whose keypoint scale ratio is within a factor 2^0.5 of the pair's median ratio (no
-  oracle).
+  oracle); ``ours+rejected-scale``: the same on ``ours+rejected``;
+* ``ours-3view``: our inliers a third view confirms; ``ours-contra``: our inliers minus those a third view
+  contradicts (:mod:`guidedmatch.collection.rescue`; no oracle).
 
 :func:`rejected_pairs_table` counts the pairs COLMAP verifies and we do not, by inlier count and camera angle, and
 says how many of their inliers agree with the reference; :func:`track_stats` describes a model's tracks;
@@ -41,6 +43,7 @@ VARIANTS = {
     "colmap-epi": ("colmap", "COLMAP's inliers within 4 px of the reference epipolar lines (oracle)"),
     "ours-f1": ("ours", "our inliers within 1 px of the epipolar lines of our own two-view F"),
     "ours-scale": ("ours", "our inliers whose scale ratio is within 2^0.5 of the pair's median ratio"),
+    "ours+rejected-scale": ("ours+rejected", "ours+rejected, then the ours-scale filter"),
     "ours-contra": ("ours", "our inliers minus those a third view contradicts (collection.rescue."
                     "contradicted_by_third_view), no oracle"),
     "ours-3view": ("ours", "our inliers confirmed by a third view (collection.rescue.confirmed_by_third_view), no oracle"),
@@ -169,7 +172,7 @@ def make_variant(method: str, cache: Path, db: Path, threads: int) -> dict:
         raise KeyError(method)
     base = VARIANTS[method][0]
     brec = match(base, cache, threads)
-    copy_database(cache / base / "database.db", db)
+    copy_database(cache / base.replace("+", "_") / "database.db", db)
     t0 = time.perf_counter()
     geoms = read_geometries(db)
     if method in ("ours-added", "colmap+added", "ours+rejected"):
@@ -188,8 +191,8 @@ def make_variant(method: str, cache: Path, db: Path, threads: int) -> dict:
         donor = None
     elif method in ("ours-3view", "ours-contra"):
         new, donor = _three_view(db, contra=method == "ours-contra"), None
-    elif method in ("ours-f1", "ours-scale"):
-        new, donor = _self_filter(db, method), None
+    elif method in ("ours-f1", "ours-scale", "ours+rejected-scale"):
+        new, donor = _self_filter(db, "ours-scale" if method.endswith("-scale") else method), None
     elif method == "ours-judged":
         new, donor = _judged(db, cache / "colmap" / "seed0" / "sparse" / "0"), None
     info = rewrite_geometries(db, new, donor)
