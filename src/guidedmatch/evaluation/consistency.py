@@ -1,6 +1,6 @@
 """Which verified inlier matches of a COLMAP database agree with a reconstruction built from it.
 
-A fundamental matrix cannot see a wrong match that lies on the right epipolar line (a repeated window, a feature
+Two judges. The model: a fundamental matrix cannot see a wrong match that lies on the right epipolar line (a repeated window, a feature
 of the same row of a facade): it passes the two-view check and is counted as a "verified inlier". A third view
 can see it. After mapping, every registered image has a pose and many keypoints a 3-D point, so each inlier
 ``(i in image A, j in image B)`` of a two-view geometry can be checked: the 3-D point of ``i`` (or, when ``i`` has
@@ -17,16 +17,28 @@ keypoint indices). ``guidedmatch bench sfm`` judges every row with the model of 
 its own tracks, which then flag right matches (Herz-Jesus-P8 at 8192, guidedmatch so+epi+ia: 4.1 % wrong by its
 own model, 2.5 % by COLMAP's). By COLMAP's model, at 8192 / ~68k features: COLMAP exhaustive 0.13 % / 0.08 %,
 COLMAP guided matching 1.6 % (8192), guidedmatch so+epi+ia 2.5 % / 1.6 %.
+
+The reference cameras (:func:`pair_table`): where poses independent of the matches exist, an inlier farther than
+:data:`EPI_WRONG_PX` (4 px) from the reference epipolar line in either image is wrong. This sees neither a wrong
+match along the line nor one within 4 px of it, and it is only as good as the reference (distorted images are
+undistorted first).
 """
 from __future__ import annotations
 
 import itertools
 import os
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
 import numpy as np
 
-__all__ = ["ModelJudge", "inlier_consistency", "label_errors"]
+if TYPE_CHECKING:
+    from .poses import CameraPose
+
+__all__ = ["ModelJudge", "inlier_consistency", "label_errors", "epipolar_distances", "undistort", "pair_table",
+           "EPI_WRONG_PX"]
+
+#: an inlier farther than this (px) from a reference epipolar line is wrong (:func:`pair_table`)
+EPI_WRONG_PX = 4.0
 
 
 def label_errors(errors: np.ndarray, ok_px: float = 3.0, wrong_px: float = 10.0) -> dict:
@@ -136,3 +148,76 @@ def inlier_consistency(database: str | os.PathLike, reconstruction: Any, ok_px: 
     return dict(inliers=int(inliers), **counts, wrong_rate=counts["wrong"] / lab if lab else float("nan"),
                 est_correct=inliers * counts["consistent"] / lab if lab else float("nan"), ok_px=ok_px,
                 wrong_px=wrong_px)
+
+
+# --------------------------------------------------------------------------- judge: reference cameras
+def epipolar_distances(kp1: np.ndarray, kp2: np.ndarray, cam1: CameraPose, cam2: CameraPose) -> np.ndarray:
+    """``(M,)`` max of the two point-to-epipolar-line distances (px) of matched pixel positions ``kp1``, ``kp2``
+    ``(M, 2)`` under the reference cameras (pinhole; undistort first).
+
+    >>> from guidedmatch.evaluation.poses import CameraPose
+    >>> K = np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]])
+    >>> a, b = CameraPose(np.eye(3), np.zeros(3), K), CameraPose(np.eye(3), np.array([-1.0, 0, 0]), K)
+    >>> epipolar_distances(np.array([[50.0, 50], [50, 50]]), np.array([[10.0, 50], [10, 53]]), a, b).round(6).tolist()
+    [0.0, 3.0]
+    """
+    from .poses import relative_pose
+
+    R, t = relative_pose(cam1, cam2)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(cam2.K).T @ tx @ R @ np.linalg.inv(cam1.K)
+    x1 = np.c_[kp1[:, :2], np.ones(len(kp1))]
+    x2 = np.c_[kp2[:, :2], np.ones(len(kp2))]
+    l2 = x1 @ F.T   # lines in image 2
+    l1 = x2 @ F     # lines in image 1
+    num = np.abs(np.sum(x2 * l2, axis=1))
+    d2 = num / np.maximum(np.hypot(l2[:, 0], l2[:, 1]), 1e-12)
+    d1 = num / np.maximum(np.hypot(l1[:, 0], l1[:, 1]), 1e-12)
+    return np.maximum(d1, d2)
+
+
+def undistort(kp: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    """Pixel positions without the lens distortion ``dist`` (OpenCV ``k1 k2 p1 p2``), same ``K``."""
+    if dist is None or len(kp) == 0:
+        return kp[:, :2]
+    import cv2
+
+    return cv2.undistortPoints(np.ascontiguousarray(kp[:, :2], np.float64).reshape(-1, 1, 2), K, dist,
+                               P=K).reshape(-1, 2)
+
+
+def pair_table(db_path: os.PathLike, ref: dict[str, CameraPose], dist: np.ndarray | None, px: float = EPI_WRONG_PX
+               ) -> list[dict]:
+    """Per verified pair of a database: ``name1, name2, inliers, epi_ok`` (inliers within ``px`` of the reference
+    epipolar lines) and ``angle_deg`` (relative rotation of the reference cameras)."""
+    import pycolmap
+
+    from .poses import relative_pose, rotation_error_deg
+
+    db = pycolmap.Database.open(str(db_path))
+    rows = []
+    try:
+        names = {img.image_id: img.name for img in db.read_all_images()}
+        kps: dict[int, np.ndarray] = {}
+
+        def kp(i):
+            if i not in kps:
+                kps[i] = undistort(np.asarray(db.read_keypoints(i), np.float64), ref[names[i]].K, dist)
+            return kps[i]
+
+        pids, counts = db.read_two_view_geometry_num_inliers()
+        for pid, n in zip(pids, counts):
+            if int(n) == 0:
+                continue
+            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+            a, b = names[i1], names[i2]
+            if a not in ref or b not in ref:
+                continue
+            m = np.asarray(db.read_two_view_geometry(i1, i2).inlier_matches, np.int64).reshape(-1, 2)
+            d = epipolar_distances(kp(i1)[m[:, 0]], kp(i2)[m[:, 1]], ref[a], ref[b])
+            R, _ = relative_pose(ref[a], ref[b])
+            rows.append({"name1": min(a, b), "name2": max(a, b), "inliers": len(m), "epi_ok": int((d <= px).sum()),
+                         "angle_deg": rotation_error_deg(R, np.eye(3))})
+    finally:
+        db.close()
+    return rows

@@ -33,7 +33,8 @@ from ..errors import InputError
 
 __all__ = ["CameraPose", "read_strecha_camera", "read_strecha_cameras", "poses_from_reconstruction",
            "rotation_error_deg", "translation_direction_error_deg", "pose_auc", "PoseEvaluation",
-           "evaluate_poses", "AUC_THRESHOLDS_DEG"]
+           "evaluate_poses", "AUC_THRESHOLDS_DEG", "read_cameras_txt", "similarity_align",
+           "aligned_centre_errors", "error_by_sequence_distance"]
 
 #: The AUC thresholds of the sfm benchmark (degrees).
 AUC_THRESHOLDS_DEG = (1.0, 2.0, 5.0)
@@ -224,3 +225,103 @@ def evaluate_poses(estimated: Mapping[str, CameraPose] | Any, ground_truth: Mapp
         median_translation_deg=float(np.median([r["translation_deg"] for r in rows])),
         auc={f"{float(T):g}": v for T, v in zip(thresholds, aucs)},
         unregistered=[n for n in names if n not in estimated])
+
+
+def read_cameras_txt(path: str | os.PathLike) -> dict[str, CameraPose]:
+    """A collection's ``cameras.txt`` -> ``{image name: CameraPose}`` (one line per image:
+    ``name fx fy cx cy r11 .. r33 t1 t2 t3 width height``, world-to-camera, ``X_cam = R X + t``).
+
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "cameras.txt"
+    >>> _ = p.write_text("a.jpg 100 100 50 40 1 0 0 0 1 0 0 0 1 1 2 3 100 80\\n")
+    >>> cam = read_cameras_txt(p)["a.jpg"]
+    >>> cam.t.tolist(), cam.K[0].tolist(), cam.size
+    ([1.0, 2.0, 3.0], [100.0, 0.0, 50.0], (100, 80))
+    """
+    path = Path(path)
+    out = {}
+    try:
+        for k, line in enumerate(path.read_text().splitlines(), 1):
+            f = line.split()
+            if not f or f[0].startswith("#"):
+                continue
+            if len(f) != 19:
+                raise ValueError(f"line {k}: {len(f)} fields, expected 19")
+            v = np.array(f[1:], np.float64)
+            K = np.array([[v[0], 0.0, v[2]], [0.0, v[1], v[3]], [0.0, 0.0, 1.0]])
+            out[f[0]] = CameraPose(R=v[4:13].reshape(3, 3), t=v[13:16], K=K, size=(int(v[16]), int(v[17])))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a cameras.txt (name fx fy cx cy R(9) t(3) width height): {exc}") from None
+    if not out:
+        raise InputError(f"{path}: no cameras")
+    return out
+
+
+def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + t`` between two ``(N, 3)`` point sets (Umeyama 1991), N >= 3
+    points not all on one line. Returns ``(s, R, t)``.
+
+    >>> from scipy.spatial.transform import Rotation
+    >>> rng = np.random.default_rng(0)
+    >>> X = rng.normal(size=(6, 3)); R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    >>> s, R2, t = similarity_align(X, 2.5 * X @ R.T + [1, 2, 3])
+    >>> round(s, 9), bool(np.allclose(R2, R)), np.round(t, 9).tolist()
+    (2.5, True, [1.0, 2.0, 3.0])
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise InputError(f"similarity_align needs two (N, 3) point sets with N >= 3; got {src.shape}, {dst.shape}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    var_s = float((a ** 2).sum()) / len(src)
+    if var_s <= 1e-24:
+        raise InputError("similarity_align: the source points coincide")
+    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S)) / var_s
+    return s, R, mu_d - s * R @ mu_s
+
+
+def aligned_centre_errors(estimated: Mapping[str, CameraPose], reference: Mapping[str, CameraPose]) -> dict:
+    """Camera-centre errors after the similarity that best maps the estimated centres onto the reference ones
+    (names in both), relative to the reference's extent (the median distance of its centres from their mean), so
+    scenes in arbitrary units compare. ``{"images", "scale", "median_rel", "max_rel", "per_image"}``; NaNs with
+    fewer than 3 common images."""
+    names = sorted(set(estimated) & set(reference))
+    if len(names) < 3:
+        return {"images": len(names), "scale": float("nan"), "median_rel": float("nan"), "max_rel": float("nan"),
+                "per_image": {}}
+    C_est = np.array([estimated[n].center for n in names])
+    C_ref = np.array([reference[n].center for n in names])
+    s, R, t = similarity_align(C_est, C_ref)
+    err = np.linalg.norm(s * C_est @ R.T + t - C_ref, axis=1)
+    extent = float(np.median(np.linalg.norm(C_ref - C_ref.mean(0), axis=1))) or 1.0
+    rel = err / extent
+    return {"images": len(names), "scale": s, "median_rel": float(np.median(rel)), "max_rel": float(rel.max()),
+            "per_image": {n: float(r) for n, r in zip(names, rel)}}
+
+
+def error_by_sequence_distance(per_pair: list[dict], order: list[str], bins: Any = (1, 2, 4, 8, 16, 32, 64, 128)
+                               ) -> list[dict]:
+    """Pose error against the distance along the capture sequence: pairs ``(i, j)`` grouped by ``|i - j|`` (positions
+    in ``order``) into ``[bins[k], bins[k + 1])``; per group ``lo, hi, pairs, median_error_deg, auc1`` (inf errors =
+    failures). Groups without pairs are left out.
+
+    >>> rows = [dict(name1="a", name2="b", error_deg=0.5), dict(name1="a", name2="c", error_deg=2.0)]
+    >>> [(g["lo"], g["pairs"], g["median_error_deg"]) for g in error_by_sequence_distance(rows, ["a", "b", "c"], (1, 2, 3))]
+    [(1, 1, 0.5), (2, 1, 2.0)]
+    """
+    pos = {n: k for k, n in enumerate(order)}
+    edges = list(bins) + [math.inf]
+    d = np.array([abs(pos[r["name1"]] - pos[r["name2"]]) for r in per_pair])
+    e = np.array([r["error_deg"] for r in per_pair], np.float64)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (d >= lo) & (d < hi)
+        if sel.any():
+            out.append({"lo": int(lo), "hi": hi if math.isinf(hi) else int(hi), "pairs": int(sel.sum()),
+                        "median_error_deg": float(np.median(e[sel])), "auc1": pose_auc(e[sel], [1.0])[0]})
+    return out
