@@ -14,6 +14,12 @@ __all__ = ["add_commands", "cmd_bench", "cmd_experiment", "DELEGATED", "delegate
 DELEGATED = {
     "faults": ("guidedmatch.evaluation.bench_faults", "kill -9, disk full, two writers, corrupt inputs, fuzzed "
                "arguments: what survives, written to faults.md / faults.json"),
+    "accuracy": ("guidedmatch.evaluation.bench_accuracy", "pose accuracy per scene: COLMAP's matcher vs ours on the "
+                 "same features and mapper, mapper seeds, wrong inliers, drift figure"),
+    "large": ("guidedmatch.evaluation.bench_large", "the 220-image multi-scene collection: COLMAP exhaustive / "
+              "vocabulary tree vs ours exhaustive / retrieval / retrieval + expansion (time, recall, across-scene pairs)"),
+    "extract": ("guidedmatch.evaluation.bench_extract", "extraction options (OpenCV SIFT, pycolmap) and mappers "
+                "end to end on Herz-Jesus-P8 / P25: time and pose accuracy"),
 }
 
 
@@ -25,15 +31,24 @@ def delegated_bench(argv: list[str]):
     rest = [a for a in argv if a != "--debug"]
     if len(rest) < 2 or rest[0] != "bench" or rest[1] not in DELEGATED:
         return None
+    import inspect
+
     module = importlib.import_module(DELEGATED[rest[1]][0])
+    if "argv" in inspect.signature(module.main).parameters:   # main(argv) parses its own command line
+        args = argparse.Namespace(debug="--debug" in argv, command="bench")
+        args.func = lambda _args, _argv=rest[2:]: module.main(_argv)
+        return args
     if hasattr(module, "build_parser"):  # the module's own command line (python -m MODULE), under our name
         parser = module.build_parser()
         parser.prog = f"guidedmatch bench {rest[1]}"
     else:
         parser = argparse.ArgumentParser(prog=f"guidedmatch bench {rest[1]}", description=DELEGATED[rest[1]][1])
-        module.add_arguments(parser)
+        if "standalone" in inspect.signature(module.add_arguments).parameters:
+            module.add_arguments(parser, standalone=True)
+        else:
+            module.add_arguments(parser)
     args = parser.parse_args(rest[2:])
-    args.debug = "--debug" in argv
+    args.debug, args.command = "--debug" in argv, "bench"
     args.func = module.main
     return args
 

@@ -132,7 +132,7 @@ def add_commands(sub, parents) -> None:
     x = sub.add_parser("extract", parents=parents, help="images -> COLMAP database of features (stage 1 of sfm)",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Decode every image of IMAGE_DIR completely and extract its features into a "
-                       "COLMAP database (the extractor of guidedmatch sfm: pycolmap SIFT by default; the database "
+                       "COLMAP database (the extractor of guidedmatch sfm: OpenCV SIFT written as COLMAP writes its own by default, --detector colmap for pycolmap's; the database "
                        "works with guidedmatch colmap, colmap mapper and pycolmap). Resumable: a rerun extracts only "
                        "the images not yet in the database.",
                        epilog="examples:\n"
@@ -166,7 +166,7 @@ def add_commands(sub, parents) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Structure from motion with guidedmatch as the matcher -- the stages of guidedmatch "
                        "extract, colmap and map in one process: every image decoded completely and its features "
-                       "extracted (pycolmap SIFT by default) into OUT_DIR/database.db, collection matching, pycolmap's "
+                       "extracted (OpenCV SIFT in COLMAP's conventions by default) into OUT_DIR/database.db, collection matching, pycolmap's "
                        "incremental (default) or global mapper into OUT_DIR/sparse/0 (sparse/1, ... when the images "
                        "form several models), report.json / report.md / reconstruction.png with the time and peak "
                        "memory of each stage. A damaged image is skipped and named (--bad-images refuse: exit 2). "

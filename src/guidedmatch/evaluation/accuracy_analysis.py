@@ -31,6 +31,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from .meta import default_cache
 
 #: variant -> (base method, what it does)
 VARIANTS = {
@@ -428,7 +429,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m guidedmatch.evaluation.accuracy_analysis",
                                 description="measurements of the accuracy benchmark's cached scenes")
     p.add_argument("--scenes", default="Herz-Jesus-P8,Herz-Jesus-P25,buddha,fox")
-    p.add_argument("--cache", default="/work/cache/accuracy")
+    p.add_argument("--cache", default=default_cache("accuracy"))
     p.add_argument("--out", default="benchmarks/results/accuracy")
     args = p.parse_args(argv)
     res, md = {}, ["# What our match sets give the mapper, per scene", ""]

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .meta import default_cache
 from .consistency import EPI_WRONG_PX, epipolar_distances, pair_table, undistort
 from .poses import (CameraPose, aligned_centre_errors, error_by_sequence_distance, evaluate_poses,
                     poses_from_reconstruction, read_cameras_txt, read_strecha_cameras)
@@ -495,13 +496,14 @@ def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int,
 
 
 def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, threads: int = 2,
-        cache: Path = Path("/work/cache/accuracy"), redo=(), command: str = "", repeats: int = 0,
+        cache: Path | None = None, redo=(), command: str = "", repeats: int = 0,
         cached_only: bool = False) -> dict:
     """Run the scenes; merge with the rows of an existing ``out/accuracy.json`` for other (scene, method); write
     ``accuracy.json``, ``accuracy.md``, ``accuracy_drift.png``."""
     from ..features import atomic_write_text
-    from .meta import run_metadata
+    from .meta import default_cache, run_metadata
 
+    cache = Path(default_cache("accuracy") if cache is None else cache)
     out.mkdir(parents=True, exist_ok=True)
     old = _read_json(out / "accuracy.json") or {}
     rows = []
@@ -548,7 +550,7 @@ def add_arguments(p: argparse.ArgumentParser, standalone: bool = False) -> None:
     p.add_argument("--scenes", default=",".join(SCENES),
                    help="accuracy: comma-separated scenes (default: all with poses: " + ", ".join(SCENES) + ")")
     p.add_argument("--seeds", default="0,1,2", help="accuracy: mapper seeds (IncrementalPipelineOptions.random_seed)")
-    p.add_argument("--cache", default=os.environ.get("GUIDEDMATCH_ACCURACY_CACHE", "/work/cache/accuracy"),
+    p.add_argument("--cache", default=default_cache("accuracy"),
                    help="accuracy: where extracted / matched databases and models are kept between runs")
     p.add_argument("--cached-only", action="store_true", help="accuracy: tabulate what the cache holds; a method "
                    "not matched and mapped there for every seed is skipped, nothing is computed")

@@ -1,6 +1,6 @@
 """Large multi-scene collection: pair selection and matching of 220 photos vs COLMAP's exhaustive and vocab-tree.
 
-``python -m guidedmatch.evaluation.bench_large [--out benchmarks/results/large] [--work /work/cache/large]``
+``python -m guidedmatch.evaluation.bench_large [--out benchmarks/results/large] [--work DIR]``
 
 Images (read in place, named by their path relative to the data folder, so names are unique across folders):
 ``collections/{Herz-Jesus-P25,buddha,fox,lund}/images`` + ``pose_pairs/strecha/Herz-Jesus-P8/images`` +
@@ -45,6 +45,7 @@ import time
 from pathlib import Path
 
 from .bench_collection import THREADS, _env, _timed
+from .meta import default_cache
 
 FOLDERS = ("collections/Herz-Jesus-P25/images", "collections/buddha/images", "collections/fox/images",
            "collections/lund/images", "pose_pairs/strecha/Herz-Jesus-P8/images", "photos/unsplash")
@@ -466,7 +467,7 @@ def snapshot_figure(res: dict, path: Path) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=os.environ.get("GUIDEDMATCH_DATA", "/work/shared/data"))
     p.add_argument("--out", default="benchmarks/results/large")
-    p.add_argument("--work", default="/work/cache/large", help="databases and cached results (not in the repo)")
+    p.add_argument("--work", default=default_cache("large"), help="databases and cached results (not in the repo)")
     p.add_argument("--k", type=int, default=20, help="images per image: our retrieval:K and COLMAP's num_images")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--rerun", default="", help="comma-separated methods to run again instead of reusing")

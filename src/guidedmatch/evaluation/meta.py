@@ -185,3 +185,17 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Pat
             os.unlink(tmp)
         raise
     return path
+
+
+def default_cache(name: str) -> str:
+    """Where a benchmark keeps what it may reuse (extracted databases, finished runs): ``$GUIDEDMATCH_CACHE/NAME``,
+    default ``~/.cache/guidedmatch/NAME`` -- outside the repository.
+
+    >>> default_cache("large").endswith("large")
+    True
+    """
+    import os
+    from pathlib import Path
+
+    root = os.environ.get("GUIDEDMATCH_CACHE") or str(Path.home() / ".cache" / "guidedmatch")
+    return str(Path(root) / name)

@@ -4,12 +4,15 @@ stages one command at a time (``guidedmatch extract`` -> ``guidedmatch colmap`` 
 Three resumable stages in the style of hloc (each a ``main(conf, paths)`` that reuses what a previous run left):
 
 1. **extraction** (:func:`extract_main`): every image decoded once and completely (a truncated or corrupt file is
-   skipped and listed in the report by name and reason, or refused with ``bad_images="refuse"``), then pycolmap's
-   SIFT on those pixels by default -- the same keypoints and descriptors ``colmap feature_extractor`` writes -- or
-   one of our OpenCV detectors (``detector="ours:sift|orb|akaze|brisk"``), in worker processes
+   skipped and listed in the report by name and reason, or refused with ``bad_images="refuse"``), then by default
+   OpenCV SIFT written as COLMAP writes its own (``detector="sift"``, :func:`guidedmatch.extraction.extract_to_database`:
+   COLMAP's image size, octaves, thresholds and feature selection, RootSIFT uint8, pixel-centre keypoints), or
+   pycolmap's SIFT (``detector="colmap"``: the keypoints and descriptors ``colmap feature_extractor`` writes), or one
+   of our OpenCV detectors (``detector="ours:sift|orb|akaze|brisk"``)
    (:func:`guidedmatch.collection.image_folder.extract_folder`). Images already in the database are not read again.
 2. **matching** (:func:`match_main`): :func:`guidedmatch.collection.engine.match_collection` over the pair list
-   (exhaustive by default, ``sequential[:K]`` or a pairs file), writing matches and two-view geometries into the
+   (``pairs="auto"``: exhaustive up to 60 images, else ``retrieval:20`` followed by the verified expansion;
+   ``exhaustive``, ``sequential[:K]``, ``retrieval[:K]`` or a pairs file), writing matches and two-view geometries into the
    database (``geometry="ours"``: the matcher's own verdict; ``"colmap"``: pycolmap's verification afterwards),
    then at most ``max_inliers_per_pair`` inliers of each pair are kept for the mapper (spread over the image, best
    first: :meth:`guidedmatch.collection.ColmapSink.cap_inliers`; ``0`` keeps all). Pairs already complete in the
