@@ -290,6 +290,7 @@ def test_staged_pipeline_is_sfm_and_features_are_colmaps(rendered, tmp_path):
     line = _one_error_line(refused)
     assert "cut.jpg" in line and "truncated or corrupt" in line
     assert not db.exists() or not pycolmap.Database.open(str(db)).num_images()
+    assert not db.with_name(db.name + ".guidedmatch.json").exists()   # refused: nothing left behind
 
     proc = run_cli("extract", images, db, "--quiet", "--detector", "colmap")
     assert proc.returncode == 0, proc.stderr

@@ -156,9 +156,15 @@ def run_extract(image_dir: str | os.PathLike, database: str | os.PathLike, confi
     names = image_names(paths.image_dir)
     project = check_output(conf, paths, project_file(paths.database), matching=False)
     make_folder(paths.database.parent, "database folder")
-    write_project(project_file(paths.database), project)
-    with colmap_log_level(0 if colmap_log else 1):
-        rec = extract_main(conf, paths, names)
+    record, had_database = project_file(paths.database), paths.database.exists()
+    write_project(record, project)
+    try:
+        with colmap_log_level(0 if colmap_log else 1):
+            rec = extract_main(conf, paths, names)
+    except BaseException:
+        if not had_database and not paths.database.exists():  # refused before anything was written: leave nothing
+            record.unlink(missing_ok=True)
+        raise
     rec["images"] = len(names)
     return rec
 
