@@ -133,7 +133,7 @@ def union_free(base: np.ndarray, extra: np.ndarray) -> np.ndarray:
 
 
 def _epi_filter(db_path: Path, cache: Path, px: float) -> dict:
-    from .bench_accuracy import distortion, reference_cameras
+    from .accuracy_scenes import distortion, reference_cameras
     from .consistency import epipolar_distances, undistort
     import pycolmap
 
@@ -161,13 +161,13 @@ def _scene_of(cache: Path) -> tuple[Path, str]:
     return Path(info["root"]), info["scene"]
 
 
-def make_variant(method: str, cache: Path, db: Path, threads: int) -> dict:
+def make_variant(method: str, cache: Path, db: Path, threads: int, *, match) -> dict:
     """Build variant ``method``'s database at ``db`` (a copy of its base's, rewritten); the record of
     :func:`guidedmatch.evaluation.bench_accuracy.match` (``match_s``: the base's matching time; the rewrite is an
-    analysis, not a method)."""
+    analysis, not a method). ``match``: the benchmark's ``match(method, cache, threads)``, which builds the base."""
     import time
 
-    from .bench_accuracy import copy_database, match
+    from .accuracy_scenes import copy_database
 
     if method not in VARIANTS:
         raise KeyError(method)
@@ -299,7 +299,7 @@ def added_stats(cache: Path, px: float = 4.0) -> dict:
     SIFT rows), scale disagreement (``|log2(s1 / s2) - pair median|``) and distance from the image centre."""
     import pycolmap
 
-    from .bench_accuracy import distortion, reference_cameras
+    from .accuracy_scenes import distortion, reference_cameras
     from .consistency import epipolar_distances, undistort
 
     root, scene = _scene_of(cache)
