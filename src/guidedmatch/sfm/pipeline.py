@@ -145,6 +145,22 @@ def run_sfm(image_dir: str | os.PathLike, out_dir: str | os.PathLike, config: Sf
         return main(config_from(SfmConfig, config), SfmPaths(image_dir, out_dir), command=command)
 
 
+def _no_images(database: Path) -> bool:
+    """True when ``database`` is missing or holds no image (what a refused extraction leaves)."""
+    import sqlite3
+
+    if not database.exists():
+        return True
+    try:
+        con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
+        try:
+            return con.execute("SELECT COUNT(*) FROM images").fetchone()[0] == 0
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return False
+
+
 def run_extract(image_dir: str | os.PathLike, database: str | os.PathLike, config: SfmConfig | dict | None = None,
                 colmap_log: bool = False) -> dict:
     """``guidedmatch extract IMAGE_DIR DATABASE``: stage 1 of :func:`main` alone, into ``database`` (created when
@@ -162,7 +178,9 @@ def run_extract(image_dir: str | os.PathLike, database: str | os.PathLike, confi
         with colmap_log_level(0 if colmap_log else 1):
             rec = extract_main(conf, paths, names)
     except BaseException:
-        if not had_database and not paths.database.exists():  # refused before anything was written: leave nothing
+        if not had_database and _no_images(paths.database):  # refused before any image was written: leave nothing
+            for side in ("", "-wal", "-shm", "-journal"):
+                paths.database.with_name(paths.database.name + side).unlink(missing_ok=True)
             record.unlink(missing_ok=True)
         raise
     rec["images"] = len(names)
