@@ -388,3 +388,47 @@ def test_two_unrelated_scenes_give_two_models(tmp_path, pairs):
     tried = rep["stages"]["matching"]["pairs"] if "stages" in rep else None
     if pairs != "auto" and tried is not None:   # the shortlist tries fewer than all 28 pairs
         assert tried < 28
+
+
+def test_a_second_sfm_on_the_same_project_is_refused_before_any_write(rendered, tmp_path):
+    """Two processes on one project: the second gets exit 2 naming the lock holder, and the first's database is
+    untouched by it; the lock is re-entrant within the process that holds it (its own sink opens it again)."""
+    from guidedmatch.collection.sinks import WriteLock
+    from guidedmatch.errors import DatabaseBusyError
+
+    scene, folder = rendered
+    out = tmp_path / "proj"
+    out.mkdir()
+    holder = WriteLock(out / "database.db", reentrant=True).acquire()   # stands for a running sfm in this process
+    try:
+        with WriteLock(out / "database.db"):              # re-entrant here
+            pass
+        assert holder.held and WriteLock._HELD           # still held after the inner release
+        with pytest.raises(DatabaseBusyError):            # a non-re-entrant holder is refused even in-process
+            _twice(tmp_path / "other.db")
+        code = ("import fcntl, sys; fd = open(sys.argv[1] + '.lock', 'a'); fcntl.flock(fd, fcntl.LOCK_EX); "
+                "print('locked', flush=True); sys.stdin.read()")
+    finally:
+        holder.release()
+    # another process holds it: sfm and extract refuse at once, exit 2, nothing written
+    proc = subprocess.Popen([sys.executable, "-c", code, str(out / "database.db")], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "locked"
+        for argv in (("sfm", folder, out, "--quiet"), ("extract", folder, out / "database.db", "--quiet")):
+            res = run_cli(*argv)
+            assert res.returncode == 2 and "being written by another process" in res.stderr, res.stderr
+        assert not (out / "database.db").exists()
+    finally:
+        proc.stdin.close()
+        proc.wait(timeout=30)
+
+
+def _twice(target):
+    from guidedmatch.collection.sinks import WriteLock
+
+    first = WriteLock(target).acquire()
+    try:
+        WriteLock(target).acquire()
+    finally:
+        first.release()

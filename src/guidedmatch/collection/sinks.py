@@ -56,16 +56,31 @@ def colmap_pixel_geometry(F: np.ndarray | None, H: np.ndarray | None, swap: bool
 
 # ====================================================================== lock
 class WriteLock:
-    """Exclusive, non-blocking ``fcntl.flock`` on ``<target>.lock`` (released on close or process death)."""
+    """Exclusive, non-blocking ``fcntl.flock`` on ``<target>.lock`` (released on close or process death).
 
-    def __init__(self, target: str | os.PathLike) -> None:
+    ``reentrant=True``: a holder that lets later acquisitions in the same process share its lock (``guidedmatch sfm``
+    holds it for its whole run and its stages open sinks on the same database); the lock is released when that
+    outer holder releases it. Without it, a second acquisition is refused even within one process."""
+
+    #: resolved lock path -> [fd, holders, pid] of the re-entrant locks this process holds
+    _HELD: dict = {}
+
+    def __init__(self, target: str | os.PathLike, *, reentrant: bool = False) -> None:
         self.target = Path(target)
+        self.reentrant = reentrant
         self.path = self.target.with_name(self.target.name + ".lock")
         self._fd: int | None = None
+        self._key = ""
 
     def acquire(self) -> "WriteLock":
         import fcntl
 
+        self._key = key = str(self.path.resolve())
+        held = WriteLock._HELD.get(key)
+        if held is not None and held[2] == os.getpid():  # this process holds it already: one more holder
+            held[1] += 1
+            self._fd = held[0]
+            return self
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
         except OSError as exc:
@@ -83,17 +98,31 @@ class WriteLock:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._fd = fd
+        if self.reentrant:
+            WriteLock._HELD[key] = [fd, 1, os.getpid()]
         return self
 
     def release(self) -> None:
         import fcntl
 
         fd, self._fd = self._fd, None
-        if fd is not None:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_UN)
-            finally:
-                os.close(fd)
+        if fd is None:
+            return
+        held = WriteLock._HELD.get(self._key)
+        if held is not None and held[0] == fd and held[1] > 1:  # an outer holder keeps it
+            held[1] -= 1
+            return
+        WriteLock._HELD.pop(self._key, None)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
+
+    def __enter__(self) -> "WriteLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
     @property
     def held(self) -> bool:

@@ -9,6 +9,7 @@ import threading
 import time
 from pathlib import Path
 
+from ..collection.sinks import WriteLock
 from ..errors import InputError
 from ..validation import config_from
 from .config import IMAGE_EXTENSIONS, SfmConfig, SfmPaths, say
@@ -55,8 +56,6 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     fewer than 2 images are usable; ImageReadError with ``bad_images="refuse"`` and a damaged image."""
     from .._runtime import require_zlib
     from ..collection.pairs import check_pairs_spec
-    from ..evaluation.meta import run_metadata, write_json
-    from ..features import atomic_write_text
 
     conf = config_from(SfmConfig, conf)
     require_zlib(paths.figure)  # a process where the figure's PNG encoder would abort: say so before any work
@@ -66,6 +65,17 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     if conf.pairs != "auto":
         check_pairs_spec(conf.pairs, names)   # a bad spec, a missing pairs file or unknown names fail here, before any work
     make_folder(paths.out_dir, "OUT_DIR")
+    make_folder(paths.database.parent, "database folder")
+    with WriteLock(paths.database, reentrant=True):   # a second sfm on the same project refuses here (exit 2), before any write
+        return _main_locked(conf, paths, command, names, project, t_start)
+
+
+def _main_locked(conf: SfmConfig, paths: SfmPaths, command: str, names: list[str], project: dict,
+                 t_start: float) -> dict:
+    """:func:`main` once the database's write lock is held."""
+    from ..evaluation.meta import run_metadata, write_json
+    from ..features import atomic_write_text
+
     write_project(paths.project, project)
 
     # No matching set-up in a thread during the extraction: the extraction keeps both cores busy, and on
@@ -173,8 +183,9 @@ def run_extract(image_dir: str | os.PathLike, database: str | os.PathLike, confi
     project = check_output(conf, paths, project_file(paths.database), matching=False)
     make_folder(paths.database.parent, "database folder")
     record, had_database = project_file(paths.database), paths.database.exists()
-    write_project(record, project)
+    lock = WriteLock(paths.database, reentrant=True).acquire()   # another writer of this database: refused here, before any write
     try:
+        write_project(record, project)
         with colmap_log_level(0 if colmap_log else 1):
             rec = extract_main(conf, paths, names)
     except BaseException:
@@ -183,6 +194,8 @@ def run_extract(image_dir: str | os.PathLike, database: str | os.PathLike, confi
                 paths.database.with_name(paths.database.name + side).unlink(missing_ok=True)
             record.unlink(missing_ok=True)
         raise
+    finally:
+        lock.release()
     rec["images"] = len(names)
     return rec
 
