@@ -178,8 +178,9 @@ def sequential_pairs(names: Sequence[str], overlap: int = 10, quadratic: bool = 
 def read_pairs_file(path: str | os.PathLike, names: Sequence[str] | None) -> PairList:
     """Read a COLMAP / hloc pairs file: ``name1 name2`` per line (whitespace separated).
 
-    Blank lines and lines starting with ``#`` are skipped; a line with another number of fields, a missing file
-    or names the source does not have (``names``) raise :class:`InputError` with line numbers. Duplicates,
+    Blank lines and lines starting with ``#`` are skipped; a line with another number of fields, a missing file,
+    a file without any pair, or names the source does not have (``names``) raise :class:`InputError` with line
+    numbers. Duplicates,
     reversed duplicates and self-pairs are dropped and reported (see :func:`normalize_pairs`). Image names
     cannot contain whitespace (neither COLMAP's nor hloc's reader allows it).
     """
@@ -202,6 +203,8 @@ def read_pairs_file(path: str | os.PathLike, names: Sequence[str] | None) -> Pai
             raise InputError(f"{path}:{lineno}: expected 'name1 name2', got {len(fields)} field(s): {s[:120]!r}")
         pairs.append((fields[0], fields[1]))
         lines.append(lineno)
+    if not pairs:  # most likely the wrong file, or one cut off by a failed write: say so rather than match nothing
+        raise InputError(f"pairs file {path} has no 'name1 name2' line")
     return normalize_pairs(pairs, names, source=f"file {path.name}", lines=lines)
 
 
