@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import GuidedMatchError
 from .faults_common import Row, Run, run_cli
 
 
@@ -53,9 +54,14 @@ def run_inprocess(argv, timeout: float = 0) -> Run:
             except _Timeout:
                 rc = None
                 err.write("\n[timeout]")
-            except BaseException:  # noqa: BLE001 - what the user would see as a traceback
-                rc = None
-                err.write(traceback.format_exc())
+            except BaseException as exc:  # noqa: BLE001 - what the user would see as a traceback
+                if isinstance(exc, GuidedMatchError) and "--debug" in [str(a) for a in argv]:
+                    # --debug asks for the traceback of a user error: main re-raises it instead of exit 2 (documented)
+                    rc = 2
+                    err.write(f"guidedmatch: error (--debug: raised as asked): {exc}\n")
+                else:
+                    rc = None
+                    err.write(traceback.format_exc())
     finally:
         if timeout:
             signal.setitimer(signal.ITIMER_REAL, 0)
