@@ -1,6 +1,7 @@
 """Counts and hashes of a behaviour capture, to compare two versions of the code on one machine.
 
-A capture folder holds the outputs of one version (written by a script that runs, with that version on PYTHONPATH):
+A capture folder holds the outputs of one version (written by ``tools/behaviour_capture.sh CHECKOUT OUT``, which runs,
+with that version on PYTHONPATH):
 ``guidedmatch demo > demo.txt``, ``guidedmatch bench oxford --quick --out oxford``, ``guidedmatch bench pairs
 --features 8192 --out pairs --repeats 1`` and ``colmap_hash.txt`` (sha256 of the ``matches`` and
 ``two_view_geometries`` tables of a ``guidedmatch colmap`` database, rows ordered by pair_id). This prints, for each
