@@ -106,7 +106,9 @@ class ExtractionConfig:
         check_choice(o, "selection", self.selection, ("levels", "scale"))
         if self.extractor == "pycolmap" and self.selection != "levels":
             raise ConfigError(f"{o}.selection='scale' is for extractor='opencv' (pycolmap applies COLMAP's rule)")
-        _check_camera_model(self.camera_model)
+        from .collection.image_folder import check_camera_model
+
+        check_camera_model(self.camera_model, f"{o}.camera_model")
         check_bool(o, "single_camera", self.single_camera)
         check_number(o, "workers", self.workers, lo=1, integer=True, allow_none=True)
         check_choice(o, "on_error", self.on_error, ("skip", "raise"))
@@ -115,16 +117,6 @@ class ExtractionConfig:
     @property
     def num_workers(self) -> int:
         return int(self.workers or os.cpu_count() or 1)
-
-
-def _check_camera_model(name: str) -> None:
-    import pycolmap
-
-    try:
-        pycolmap.Camera.create_from_model_name(1, name, 100.0, 100, 100)
-    except Exception:  # noqa: BLE001 - pycolmap raises a bare exception type for an unknown name
-        raise ConfigError(f"ExtractionConfig.camera_model: unknown COLMAP camera model {name!r} "
-                          "(e.g. SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV)") from None
 
 
 @dataclass(frozen=True)

@@ -279,14 +279,14 @@ def _results(tasks: list, workers: int):
                 f.cancel()
 
 
-def check_camera_model(camera_model: str) -> None:
-    """ConfigError unless ``camera_model`` is a COLMAP camera model name."""
+def check_camera_model(camera_model: str, what: str = "") -> None:
+    """ConfigError unless ``camera_model`` is a COLMAP camera model name (``what``: the field, for the message)."""
     import pycolmap
 
     try:
         pycolmap.Camera.create_from_model_name(1, camera_model, 100.0, 100, 100)
-    except Exception:
-        raise ConfigError(f"unknown COLMAP camera model {camera_model!r} "
+    except Exception:  # noqa: BLE001 - pycolmap raises a bare exception type for an unknown name
+        raise ConfigError(f"{what + ': ' if what else ''}unknown COLMAP camera model {camera_model!r} "
                           "(e.g. SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV)") from None
 
 
