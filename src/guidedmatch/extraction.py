@@ -387,25 +387,6 @@ def database_keypoint_counts(database_path: str | os.PathLike) -> dict[str, int]
         db.close()
 
 
-def _list_names(image_dir: Path, image_names) -> list[str]:
-    from .collection.image_folder import list_images
-
-    if not image_dir.is_dir():
-        raise InputError(f"image folder not found: {image_dir}")
-    if image_names is None:
-        names = list_images(image_dir)
-        if not names:
-            raise InputError(f"no images in {image_dir}")
-        return names
-    names = [Path(str(n)).as_posix() for n in image_names]
-    missing = [n for n in names if not (image_dir / n).is_file()]
-    if missing:
-        raise InputError(f"{len(missing)} image name(s) are not files in {image_dir}: {', '.join(missing[:3])}")
-    if len(set(names)) != len(names):
-        raise InputError("image_names has repeated names")
-    return names
-
-
 def _check_database_path(database_path: Path) -> None:
     if database_path.is_dir():
         raise OutputError(f"database path is a directory: {database_path}")
@@ -491,7 +472,9 @@ def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.Pa
     """
     conf = config_from(ExtractionConfig, conf)
     image_dir, database_path = Path(image_dir), Path(database_path)
-    names = _list_names(image_dir, image_names)
+    from .collection.image_folder import image_names_in
+
+    names = image_names_in(image_dir, image_names, allow_empty=True)
     _check_database_path(database_path)
     t0 = time.perf_counter()
     before = database_keypoint_counts(database_path) if database_path.exists() else {}

@@ -79,6 +79,29 @@ def list_images(image_dir: str | os.PathLike) -> list[str]:
     return sorted(names)
 
 
+def image_names_in(image_dir: str | os.PathLike, image_names=None, *, allow_empty: bool = False) -> list[str]:
+    """The images to use from ``image_dir``: all of them (:func:`list_images`) when ``image_names`` is None, else
+    ``image_names`` as POSIX paths, each checked to be a file there and none repeated. InputError when the folder is
+    missing, a name is not a file or repeats, or there is no image (an explicit empty list is allowed with
+    ``allow_empty``)."""
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise InputError(f"image folder not found: {image_dir}")
+    if image_names is None:
+        names = list_images(image_dir)
+    else:
+        names = [Path(str(n)).as_posix() for n in image_names]
+        missing = [n for n in names if not (image_dir / n).is_file()]
+        if missing:
+            raise InputError(f"{len(missing)} of the image_names are not files in {image_dir}: "
+                             f"{', '.join(missing[:5])}" + (" ..." if len(missing) > 5 else ""))
+        if len(set(names)) != len(names):
+            raise InputError("image_names has repeated names")
+    if not names and not (allow_empty and image_names is not None):
+        raise InputError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in {image_dir}")
+    return names
+
+
 def decode_image(path: str | os.PathLike, rgb: bool) -> np.ndarray:
     """The whole image, decoded strictly (ImageReadError naming the file otherwise): ``(h, w, 3)`` RGB uint8 when
     ``rgb`` (COLMAP's extractor input), else the decoder's ``(h, w)`` grey. EXIF orientation is not applied (COLMAP

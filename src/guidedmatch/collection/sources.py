@@ -638,8 +638,7 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
     """
     from ..features import check_detector_options
     from ..validation import check_bool, check_choice, check_number
-    from .image_folder import ExtractorSpec, check_camera_model, extract_folder
-    from .image_folder import list_images as _list_images
+    from .image_folder import ExtractorSpec, check_camera_model, extract_folder, image_names_in
 
     check_choice("images_to_database", "detector", detector, DETECTORS)
     check_number("images_to_database", "max_features", max_features, lo=1, integer=True, allow_none=True)
@@ -651,19 +650,7 @@ def images_to_database(image_dir: str | os.PathLike, database_path: str | os.Pat
     options = check_detector_options(detector, dict(detector_options or {}))
     check_camera_model(camera_model)
     image_dir, database_path = Path(image_dir), Path(database_path)
-    if not image_dir.is_dir():
-        raise InputError(f"image folder not found: {image_dir}")
-    if image_names is None:
-        names = _list_images(image_dir)
-    else:
-        names = [Path(str(n)).as_posix() for n in image_names]
-        missing = [n for n in names if not (image_dir / n).is_file()]
-        if missing:
-            raise InputError(f"{len(missing)} of the image_names are not files in {image_dir}: {_examples(missing)}")
-        if len(set(names)) != len(names):
-            raise InputError("image_names has repeated names")
-    if not names:
-        raise InputError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in {image_dir}")
+    names = image_names_in(image_dir, image_names)
     if database_path.exists() and not resume:
         raise OutputError(f"database {database_path} exists; pass it as the feature source, delete it, "
                           "or resume=True to complete it")
