@@ -179,8 +179,9 @@ def add_expansion_options(p: argparse.ArgumentParser) -> None:
 def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict | None:
     """ExpansionConfig fields (dict) when the verified expansion runs, else None: on by default when the pair spec
     has a retrieval part."""
-    parts = [x.strip() for x in str(spec).split("+")] if not Path(spec).exists() else []
-    on = expand if expand is not None else any(x.split(":")[0] == "retrieval" for x in parts)
+    from ..collection.pairs import has_retrieval
+
+    on = expand if expand is not None else has_retrieval(spec)
     if rounds is not None and not on:
         raise ConfigError("--expand-rounds needs the expansion (--expand, or a retrieval --pairs spec)")
     if not on:

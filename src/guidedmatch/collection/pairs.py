@@ -215,6 +215,16 @@ def write_pairs_file(path: str | os.PathLike, pairs: Iterable[Pair]) -> None:
     atomic_write_text(path, "".join(f"{a} {b}\n" for a, b in pairs))
 
 
+def has_retrieval(spec: str) -> bool:
+    """Whether a pair spec has a ``retrieval`` part (a pairs file never has).
+
+    >>> has_retrieval("sequential:5+retrieval:20"), has_retrieval("exhaustive")
+    (True, False)
+    """
+    spec = str(spec)
+    return not Path(spec).exists() and any(p.strip().split(":")[0] == "retrieval" for p in spec.split("+"))
+
+
 def check_pairs_spec(spec: str, names: Sequence[str]) -> None:
     """Fail now (ConfigError / InputError) on a spec :func:`pairs_from_spec` would refuse, without computing
     anything expensive: retrieval parts are only parsed (their pairs need the features).

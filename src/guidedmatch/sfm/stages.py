@@ -336,9 +336,9 @@ def auto_pairs(num_images: int) -> str:
 
 def expansion_wanted(spec: str) -> dict | None:
     """The verified expansion follows a pair spec with a retrieval part (ExpansionConfig defaults), else None."""
-    if Path(spec).exists():
-        return None
-    return {} if any(x.strip().split(":")[0] == "retrieval" for x in spec.split("+")) else None
+    from ..collection.pairs import has_retrieval
+
+    return {} if has_retrieval(spec) else None
 
 
 def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
