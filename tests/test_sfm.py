@@ -322,7 +322,7 @@ def test_staged_pipeline_is_sfm_and_features_are_colmaps(rendered, tmp_path):
     proc = run_cli("colmap", db, "--max-inliers-per-pair", "1000", "--workers", "0", "--no-progress")
     assert proc.returncode == 0, proc.stderr
     assert "next       : guidedmatch map" in proc.stdout
-    proc = run_cli("map", db, images, tmp_path / "staged" / "sparse", "--threads", "2", "--quiet")
+    proc = run_cli("map", db, images, tmp_path / "staged" / "sparse", "--threads", "1", "--quiet")  # one mapper thread
     assert proc.returncode == 0, proc.stderr
     assert "5 images" in proc.stdout and "next       : colmap gui" in proc.stdout
     rec = pycolmap.Reconstruction(str(tmp_path / "staged" / "sparse" / "0"))
