@@ -606,3 +606,41 @@ def test_h5_nan_keypoints_refused_naming_the_image(tmp_path):
     with pytest.raises(InputError, match=r"f\.h5: image 'b.jpg' has 1 of 4 keypoints with non-finite"):
         src.load("b.jpg")
     assert len(src.load("a.jpg")) == 4
+
+
+def _process_locks(path):
+    """This process's POSIX locks on ``path`` (from /proc/locks: SQLite's shared lock of an open WAL database)."""
+    import os
+
+    ino, pid = os.stat(path).st_ino, str(os.getpid())
+    with open("/proc/locks") as fh:
+        return [line for line in fh if line.split()[4] == pid and line.split()[5].endswith(f":{ino}")]
+
+
+@pytest.mark.skipif(not __import__("pathlib").Path("/proc/locks").exists(), reason="needs Linux /proc/locks")
+def test_reading_a_database_pycolmap_holds_keeps_its_locks(tmp_path):
+    """Closing any descriptor of a file drops all of the process's POSIX locks on it; pycolmap bundles its own
+    SQLite, so a plain open() or a Python sqlite3 probe of the database while the sink's pycolmap connection is open
+    used to drop the writer's lock -- then a Dask worker closing its reader checkpointed and deleted the WAL under
+    the writer (a malformed database after an expansion round on 220 images). Every reader of a database this
+    process holds must leave the lock in place."""
+    from guidedmatch.collection.expansion import read_verified_graph
+    from guidedmatch.collection.sink_base import open_pycolmap_database
+    from guidedmatch.collection.sources import _open_colmap, open_source
+
+    path = tmp_path / "held.db"
+    _sift_db(path)
+    db = open_pycolmap_database(path)
+    try:
+        db.num_images()
+        held = _process_locks(path)
+        assert held, "pycolmap's WAL connection holds a shared lock"
+        for read in (lambda: ColmapSource(path), lambda: open_source(path), lambda: _open_colmap(path).close(),
+                     lambda: read_verified_graph(path)):
+            read()
+            assert _process_locks(path) == held
+        # the hazard itself, shown so that this test keeps meaning something: a plain open/close drops the lock
+        open(path, "rb").close()
+        assert _process_locks(path) == []
+    finally:
+        db.close()

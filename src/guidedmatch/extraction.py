@@ -54,6 +54,7 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
+from .collection.sink_base import check_database_space, open_pycolmap_database
 from .errors import ConfigError, ImageReadError, InputError, OutputError
 from .validation import check_bool, check_choice, check_number, config_from
 
@@ -378,7 +379,7 @@ def database_keypoint_counts(database_path: str | os.PathLike) -> dict[str, int]
     (an image without either counts 0)."""
     import pycolmap
 
-    db = pycolmap.Database.open(str(database_path))
+    db = open_pycolmap_database(database_path)
     try:
         return {im.name: (int(db.num_keypoints_for_image(im.image_id))
                           if db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id) else 0)
@@ -400,8 +401,8 @@ def _check_database_path(database_path: Path) -> None:
 class _Writer:
     """Writes one image per transaction (camera, rig, image, frame, keypoints, descriptors) into an open database."""
 
-    def __init__(self, db, conf: ExtractionConfig) -> None:
-        self.db, self.conf = db, conf
+    def __init__(self, db, conf: ExtractionConfig, path: Path | None = None) -> None:
+        self.db, self.conf, self.path = db, conf, path
         self.shared = self.shared_rig = None
         if conf.single_camera and db.num_cameras() > 0:
             self.shared = db.read_all_cameras()[0]
@@ -416,6 +417,8 @@ class _Writer:
             raise InputError(f"single_camera: {f.name} is {f.width}x{f.height} but the shared camera is "
                              f"{self.shared.width}x{self.shared.height}")
         desc = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(f.descriptors))
+        if self.path is not None:
+            check_database_space(self.path, np.asarray(f.keypoints).nbytes + np.asarray(f.descriptors).nbytes)
         with pycolmap.DatabaseTransaction(db):
             old = db.read_image_with_name(f.name)
             if old is None:
@@ -489,9 +492,10 @@ def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.Pa
 
         bar = tqdm(total=len(todo), desc="SIFT", unit="img", disable=not conf.progress, file=sys.stderr,
                    dynamic_ncols=True)
-        db = pycolmap.Database.open(str(database_path))
+        check_database_space(database_path, 0)  # opening a new database writes its schema
+        db = open_pycolmap_database(database_path)
         try:
-            writer = _Writer(db, conf)
+            writer = _Writer(db, conf, database_path)
             gen = iter_features(image_dir, todo, conf)
             ready: dict = {}       # finished out of order, waiting for the images before them
             nxt = 0
@@ -555,6 +559,9 @@ def extract_pycolmap(image_dir: str | os.PathLike, database_path: str | os.PathL
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = conf.camera_model
     mode = pycolmap.CameraMode.SINGLE if conf.single_camera else pycolmap.CameraMode.AUTO
+    # COLMAP's extractor writes in its own threads, where a full disk aborts the process: room for every image at
+    # its feature budget (keypoints 24 + descriptor 128 bytes a feature) is checked before it starts
+    check_database_space(Path(database_path), len(names) * conf.max_features * 152)
     pycolmap.extract_features(str(database_path), str(image_dir), image_names=list(names), camera_mode=mode,
                               reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
 

@@ -62,6 +62,10 @@ def read_verified_graph(database_path, min_inliers: int = 1, *, tried_from: str 
     two-view geometry has at least ``min_inliers`` inlier matches. Read with a read-only SQLite connection (the
     writer may hold the database open).
     """
+    from .sink_base import pycolmap_opened
+
+    if pycolmap_opened(database_path):  # Python's sqlite3 must not touch a file pycolmap holds here (sink_base)
+        return _verified_graph_pycolmap(database_path, min_inliers, tried_from)
     uri = Path(database_path).resolve().as_uri() + "?mode=ro"
     con = sqlite3.connect(uri, uri=True, timeout=30.0)
     try:
@@ -80,6 +84,39 @@ def read_verified_graph(database_path, min_inliers: int = 1, *, tried_from: str 
         tried = {s for (pid,) in con.execute(f"SELECT pair_id FROM {table}") if (s := names(pid)) is not None}
     finally:
         con.close()
+    return tried, verified
+
+
+def _verified_graph_pycolmap(database_path, min_inliers: int, tried_from: str):
+    """:func:`read_verified_graph` through pycolmap (for a database this process already holds with pycolmap)."""
+    import pycolmap
+
+    from .sources import _open_colmap
+
+    db = _open_colmap(Path(database_path))
+    try:
+        names = {int(im.image_id): im.name for im in db.read_all_images()}
+
+        def pairs(pids):
+            out = []
+            for pid in pids:
+                i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+                a, b = names.get(int(i1)), names.get(int(i2))
+                out.append(frozenset((a, b)) if a is not None and b is not None else None)
+            return out
+
+        pids, nums = db.read_two_view_geometry_num_inliers()
+        verified = {s for s, n in zip(pairs(pids), nums) if s is not None and int(n) >= min_inliers}
+        exists = db.exists_two_view_geometry if tried_from == "geometry" else db.exists_matches
+        ids = sorted(names)
+        if len(ids) * (len(ids) - 1) // 2 <= 50_000:  # every pair checked (the bulk readers skip empty rows)
+            tried = {frozenset((names[a], names[b])) for i, a in enumerate(ids) for b in ids[i + 1:] if exists(a, b)}
+        else:   # bulk: a pair with an empty row (an image without features) is missed and matched again
+            bulk = set(db.read_num_matches()[0]) | set(pids)
+            tried = {s for s, pid in zip(pairs(sorted(bulk)), sorted(bulk))
+                     if s is not None and exists(*pycolmap.pair_id_to_image_pair(int(pid)))}
+    finally:
+        db.close()
     return tried, verified
 
 

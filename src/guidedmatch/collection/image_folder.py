@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, DatabaseError, GuidedMatchError, ImageReadError, InputError, MemoryLimitError
+from .sink_base import check_database_space, open_pycolmap_database
 
 __all__ = ["IMAGE_EXTENSIONS", "ExtractorSpec", "list_images", "decode_image", "extract_image", "extract_folder",
            "COLMAP_MAX_IMAGE_SIZE"]
@@ -334,7 +335,8 @@ def extract_folder(image_dir: str | os.PathLike, database: str | os.PathLike, na
     check_camera_model(camera_model)
     t0 = time.perf_counter()
     root, database = Path(image_dir), Path(database)
-    db = pycolmap.Database.open(str(database))
+    check_database_space(database, 0)  # opening a new database writes its schema
+    db = open_pycolmap_database(database)
     try:
         existing = {im.name: im for im in db.read_all_images()}
         done = {n for n, im in existing.items() if db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id)}
@@ -371,6 +373,7 @@ def extract_folder(image_dir: str | os.PathLike, database: str | os.PathLike, na
                 skipped.append({"name": name, "reason": r["error"]})
                 continue
             w, h = r["width"], r["height"]
+            check_database_space(database, np.asarray(r["keypoints"]).nbytes + 160 * len(r["keypoints"]))
             with pycolmap.DatabaseTransaction(db):   # one image: camera, rig, image, frame, keypoints, descriptors
                 im = existing.get(name)
                 if im is None:

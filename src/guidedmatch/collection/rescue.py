@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .sink_base import open_pycolmap_database
+
 __all__ = ["RescueConfig", "rescue_pairs", "confirmed_by_third_view", "contradicted_by_third_view"]
 
 
@@ -112,7 +114,7 @@ def rescue_pairs(database: str | os.PathLike, config: RescueConfig | None = None
 
     conf = config or RescueConfig()
     t0 = time.perf_counter()
-    db = pycolmap.Database.open(str(database))
+    db = open_pycolmap_database(database)
     try:
         names = {img.image_id: img.name for img in db.read_all_images()}
         nkp = {i: int(db.read_keypoints(i).shape[0]) for i in names}
@@ -142,7 +144,7 @@ def rescue_pairs(database: str | os.PathLike, config: RescueConfig | None = None
             _match_colmap(database, [(names[a], names[b]) for a, b in candidates], conf.num_threads)
         else:
             _match_bf(database, [(names[a], names[b]) for a, b in candidates])
-        db = pycolmap.Database.open(str(database))
+        db = open_pycolmap_database(database)
         try:
             with pycolmap.DatabaseTransaction(db):
                 for a, b in candidates:

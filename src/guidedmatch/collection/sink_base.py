@@ -132,9 +132,10 @@ def _check_pairs(name1: str, name2: str, pairs, scores, n1: int | None, n2: int 
 SPACE_MARGIN = 8 << 20
 
 
-def _space_problem(paths, folder: Path, need: int) -> str | None:
+def _space_problem(paths, folder: Path, need: int, kept: str = "finished pairs are kept") -> str | None:
     """Why writing ``need`` more bytes into ``paths`` (files in ``folder``) would fail, or None: too little free
-    space on the filesystem, or a per-process file size limit (``RLIMIT_FSIZE``) below a file's size plus it."""
+    space on the filesystem, or a per-process file size limit (``RLIMIT_FSIZE``) below a file's size plus it.
+    ``kept`` ends the message: what a rerun keeps."""
     try:
         st = os.statvfs(folder)
     except OSError:
@@ -142,7 +143,7 @@ def _space_problem(paths, folder: Path, need: int) -> str | None:
     free = st.f_bavail * st.f_frsize
     if free < need:
         return (f"disk full: {free / 2**20:.1f} MB free on the filesystem of {folder}, a write needs up to "
-                f"{need / 2**20:.1f} MB; free some space and rerun (finished pairs are kept)")
+                f"{need / 2**20:.1f} MB; free some space and rerun ({kept})")
     try:
         import resource
 
@@ -154,7 +155,7 @@ def _space_problem(paths, folder: Path, need: int) -> str | None:
             size = f.stat().st_size if f.exists() else 0
             if size + need > soft:
                 return (f"file size limit: {f.name} ({size / 2**20:.1f} MB) may not grow past {soft / 2**20:.1f} MB "
-                        "in this process (ulimit -f); raise the limit and rerun (finished pairs are kept)")
+                        f"in this process (ulimit -f); raise the limit and rerun ({kept})")
     return None
 
 
@@ -183,3 +184,57 @@ class MatchSink:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def check_database_space(database_path: Path, nbytes: int) -> None:
+    """OutputError naming the database when a transaction of ``nbytes`` might not fit on its disk (or under the
+    process's file size limit). pycolmap commits in a C++ destructor, where SQLite's "database or disk is full"
+    aborts the whole process instead of raising, so the room is checked before each image is written."""
+    database_path = Path(database_path)
+    folder = database_path.parent if str(database_path.parent) else Path(".")
+    problem = _space_problem([database_path, database_path.with_name(database_path.name + "-wal")], folder,
+                             2 * int(nbytes) + SPACE_MARGIN, kept="the images already extracted are kept")
+    if problem:
+        raise OutputError(f"cannot write the COLMAP database {database_path}: {problem}")
+
+
+# ------------------------------------------------------------------------------ one SQLite library per database file
+#: (device, inode) of every database file this process has opened with pycolmap. SQLite's locks are POSIX advisory
+#: locks, held per *process*, and closing *any* descriptor of a file drops all of the process's locks on it. SQLite
+#: guards its own connections against that, but pycolmap bundles its own SQLite: a plain ``open()`` of the file or
+#: a Python ``sqlite3`` connection closed while pycolmap holds the database silently drops pycolmap's locks, and
+#: another process (a Dask worker closing its reader) may then checkpoint and delete the write-ahead log under the
+#: writer's feet -- a malformed database. Seen on a 220-image collection; so after the first pycolmap open of a file
+#: in a process, nothing but pycolmap touches that file in it (:func:`pycolmap_opened`).
+_PYCOLMAP_FILES: set = set()
+
+
+def _file_key(path) -> tuple | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def note_pycolmap_open(path) -> None:
+    """Record that this process has opened the database file ``path`` with pycolmap (module comment above)."""
+    key = _file_key(path)
+    if key is not None:
+        _PYCOLMAP_FILES.add(key)
+
+
+def pycolmap_opened(path) -> bool:
+    """True when this process has opened ``path`` with pycolmap: from then on, reading it with Python's ``open`` or
+    ``sqlite3`` could drop pycolmap's locks (module comment above), so callers use pycolmap instead."""
+    key = _file_key(path)
+    return key is not None and key in _PYCOLMAP_FILES
+
+
+def open_pycolmap_database(path):
+    """``pycolmap.Database.open(path)``, recorded by :func:`note_pycolmap_open`."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(path))
+    note_pycolmap_open(path)
+    return db

@@ -34,6 +34,7 @@ import numpy as np
 from ..errors import DatabaseError, ImageReadError, InputError, OutputError
 from ..features import BINARY_KINDS, DETECTORS, Features
 from .image_folder import IMAGE_EXTENSIONS
+from .sink_base import note_pycolmap_open, pycolmap_opened
 
 __all__ = ["FeatureSource", "ColmapSource", "H5Source", "open_source", "images_to_database", "IMAGE_EXTENSIONS",
            "COLMAP_PIXEL_OFFSET"]
@@ -211,20 +212,25 @@ def _open_colmap(path: Path, busy_timeout: float = 30.0):
         raise DatabaseError(f"COLMAP database not found: {path}")
     if path.is_dir():
         raise DatabaseError(f"COLMAP database path is a directory: {path}")
-    with open(path, "rb") as fh:
-        head = fh.read(16)
-    if head != _SQLITE_MAGIC:
-        raise DatabaseError(f"{path} is not a COLMAP database (not an SQLite file)")
-    problem = _sqlite_problem(path)
-    if problem:
-        raise DatabaseError(f"{path} {problem}")
+    # once pycolmap holds the file in this process, plain open() / sqlite3 probes must not touch it (sink_base)
+    probe = not pycolmap_opened(path)
+    if probe:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+        if head != _SQLITE_MAGIC:
+            raise DatabaseError(f"{path} is not a COLMAP database (not an SQLite file)")
+        problem = _sqlite_problem(path)
+        if problem:
+            raise DatabaseError(f"{path} {problem}")
     start = time.monotonic()
     delay = 0.02
     while True:
         try:
-            return pycolmap.Database.open(str(path))
+            db = pycolmap.Database.open(str(path))
+            note_pycolmap_open(path)
+            return db
         except Exception as exc:  # pycolmap raises RuntimeError / ValueError with SQLite's message
-            problem = _sqlite_problem(path)
+            problem = _sqlite_problem(path) if probe else None
             if problem:
                 raise DatabaseError(f"{path} {problem}") from None
             waited = time.monotonic() - start
@@ -595,6 +601,8 @@ def open_source(path: str | os.PathLike) -> FeatureSource:
     if path.is_dir():
         raise DatabaseError(f"{path} is a folder; detect its images into a database first "
                             "(guidedmatch.collection.images_to_database)")
+    if pycolmap_opened(path):  # a COLMAP database this process holds: not opened by Python again (sink_base)
+        return ColmapSource(path)
     with open(path, "rb") as fh:
         head = fh.read(16)
     if head == _SQLITE_MAGIC:

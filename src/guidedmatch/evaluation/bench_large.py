@@ -309,7 +309,7 @@ def figure(res: dict, path: Path) -> None:
 
 
 def run(data: Path, out: Path, work: Path, k: int, methods, rerun=(), vt_words: int = 4096,
-        vt_sample: int = 200_000, note: str = "") -> dict:
+        vt_sample: int = 200_000, note: str = "", map_methods=(), sfm: bool = False) -> dict:
     from .meta import run_metadata, write_json
 
     work.mkdir(parents=True, exist_ok=True)
@@ -325,17 +325,22 @@ def run(data: Path, out: Path, work: Path, k: int, methods, rerun=(), vt_words: 
             rows[m]["retrieval"] = retrieval_share(rows[m])
     have_ref = (work / "colmap_exhaustive.db").exists() or (work / "colmap_scene_pairs.db").exists()
     reference = evaluate(rows, work, scenes) if have_ref else {}
+    from .large_models import models_section
+
+    models = models_section(data, work, names, scenes, rows, map_methods, sfm, rerun)
     n = len(names)
     across = sum(scenes[names[i]] != scenes[names[j]] for i in range(n) for j in range(i + 1, n))
     res = dict(meta=run_metadata(), note=note, images=n, pairs=n * (n - 1) // 2, across_pairs=across, k=k,
-               vt_words=vt_words, vt_sample=vt_sample, extraction=ext, reference=reference, rows=rows,
+               vt_words=vt_words, vt_sample=vt_sample, extraction=ext, reference=reference, rows=rows, models=models,
                load_start=[round(x, 2) for x in load_start], load_end=[round(x, 2) for x in os.getloadavg()],
                command="python -m guidedmatch.evaluation.bench_large " + " ".join(sys.argv[1:]))
     res["extraction"].pop("names", None)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "large.json", res)
     if reference:
-        (out / "large.md").write_text(markdown(res))
+        from .large_models import models_markdown
+
+        (out / "large.md").write_text(markdown(res) + models_markdown(models))
         figure(res, out / "large.png")
     return res
 
@@ -474,6 +479,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vt-words", type=int, default=4096, help="visual words of COLMAP's tree built on the collection")
     p.add_argument("--vt-sample", type=int, default=200_000, help="descriptors sampled to build COLMAP's tree")
     p.add_argument("--note", default="")
+    p.add_argument("--map", default="", metavar="METHODS",
+                   help="methods whose database COLMAP's mapper maps (comma-separated; 'all' = every method run)")
+    p.add_argument("--sfm", action="store_true", help="also run guidedmatch sfm from an empty project (photos -> model)")
     p.add_argument("--snapshot", action="store_true", help="only evaluate where the (possibly unfinished) runs stand")
 
 
@@ -490,9 +498,12 @@ def main(argv=None) -> int:
     if bad:
         p.error(f"unknown methods {bad}; choose from {', '.join(METHODS)}")
     res = run(Path(a.data), Path(a.out), Path(a.work), a.k, methods, rerun=set(a.rerun.split(",")),
-              vt_words=a.vt_words, vt_sample=a.vt_sample, note=a.note)
+              vt_words=a.vt_words, vt_sample=a.vt_sample, note=a.note,
+              map_methods=methods if a.map == "all" else [m for m in a.map.split(",") if m], sfm=a.sfm)
     if res["reference"]:
-        print(markdown(res))
+        from .large_models import models_markdown
+
+        print(markdown(res) + models_markdown(res["models"]))
     return 0
 
 

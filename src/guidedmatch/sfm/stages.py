@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ..collection.sink_base import open_pycolmap_database
 from ..errors import DatabaseError, OutputError
 from .config import COLMAP_MAX_IMAGE_SIZE, VERIFIED_CONFIGS, SfmConfig, SfmPaths, parse_camera, say
 
@@ -106,7 +107,7 @@ def _db_image_names(db_path: Path) -> dict[str, int]:
     import pycolmap
 
     try:
-        db = pycolmap.Database.open(str(db_path))
+        db = open_pycolmap_database(db_path)
     except Exception as exc:  # noqa: BLE001 - pycolmap raises RuntimeError subclasses for any SQLite problem
         raise DatabaseError(f"{db_path}: not a readable COLMAP database ({exc})") from None
     try:
@@ -119,7 +120,7 @@ def _db_image_names(db_path: Path) -> dict[str, int]:
 def _num_matched_pairs(db_path: Path) -> int:
     import pycolmap
 
-    db = pycolmap.Database.open(str(db_path))
+    db = open_pycolmap_database(db_path)
     try:
         return int(db.num_matched_image_pairs())
     finally:
@@ -240,7 +241,7 @@ def _set_known_camera(database: Path, cam: tuple[str, list[float]]) -> None:
     import pycolmap
 
     model, params = cam
-    db = pycolmap.Database.open(str(database))
+    db = open_pycolmap_database(database)
     try:
         for c in db.read_all_cameras():
             if c.model.name != model or list(c.params) != list(params):
@@ -280,6 +281,10 @@ def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLik
         reader.camera_model = cam[0]
         reader.camera_params = ",".join(f"{v:.10g}" for v in cam[1])
         mode = pycolmap.CameraMode.SINGLE
+    from ..collection.sink_base import check_database_space
+
+    # COLMAP writes in its own threads, where a full disk aborts the process: room for every image is checked first
+    check_database_space(Path(database), len(image_names) * ext.sift.max_num_features * 152)
     pycolmap.extract_features(str(database), str(image_dir), image_names=list(image_names), camera_mode=mode,
                               reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
 
@@ -384,7 +389,7 @@ def database_pair_stats(database: str | os.PathLike) -> list[dict]:
     import pycolmap
 
     rows = []
-    db = pycolmap.Database.open(str(database))
+    db = open_pycolmap_database(database)
     try:   # counts in bulk; each geometry read alone (its inlier matches), so memory stays one pair's worth
         names = {img.image_id: img.name for img in db.read_all_images()}
         raw = {int(pid): int(n) for pid, n in zip(*db.read_num_matches())}
@@ -413,7 +418,7 @@ def database_summary(database: str | os.PathLike) -> dict:
     and their inliers (a model made from a database with the same summary and settings is reused)."""
     import pycolmap
 
-    db = pycolmap.Database.open(str(database))
+    db = open_pycolmap_database(database)
     try:
         ids, inl = db.read_two_view_geometry_num_inliers()
         return {"images": int(db.num_images()), "keypoints": int(db.num_keypoints()),
