@@ -396,3 +396,61 @@ def test_spread_matches_bad_input():
         spread_matches(np.zeros((3, 2)), (10, 10), np.zeros(3), -1)
     with pytest.raises(ConfigError):
         spread_matches(np.zeros((3, 2)), (10, 10), np.zeros(3), 1, grid=0)
+
+
+def _similarity_reference(a1, a2, s1, s2, ref, deg, octaves):
+    """Slow reference of consistent_similarity: one correspondence at a time."""
+    import math
+
+    pairs = [(x, y) for x, y, r in zip(a1, a2, ref) if r and x >= 0 and y >= 0]
+    keep = []
+    if pairs:
+        c = sum(math.cos(math.radians(y - x)) for x, y in pairs)
+        s = sum(math.sin(math.radians(y - x)) for x, y in pairs)
+        mean = math.atan2(s, c)
+    logs = sorted(math.log2(b / a) for a, b, r in zip(s1, s2, ref) if r and a > 0 and b > 0)
+    med = float(np.median(logs)) if logs else None
+    for x, y, a, b in zip(a1, a2, s1, s2):
+        ok = True
+        if pairs and x >= 0 and y >= 0:
+            d = math.radians(y - x) - mean
+            ok &= abs(math.atan2(math.sin(d), math.cos(d))) <= math.radians(deg)
+        if med is not None and a > 0 and b > 0:
+            ok &= abs(math.log2(b / a) - med) <= octaves
+        keep.append(ok)
+    return np.array(keep, bool)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 40), st.floats(5.0, 90.0), st.floats(0.25, 2.0))
+def test_consistent_similarity_equals_reference(seed, m, deg, octaves):
+    from guidedmatch.geometry import consistent_similarity
+
+    rng = np.random.default_rng(seed)
+    a1 = rng.uniform(0, 360, m)
+    a2 = np.mod(a1 + rng.normal(rng.uniform(0, 360), 25, m), 360)
+    a1[rng.random(m) < 0.1] = -1.0                      # no orientation
+    s1 = rng.uniform(1, 20, m)
+    s2 = s1 * 2.0 ** rng.normal(rng.uniform(-2, 2), 0.8, m)
+    ref = rng.random(m) < 0.7
+    got = consistent_similarity(a1, a2, s1, s2, ref, deg, octaves)
+    want = _similarity_reference(a1, a2, s1, s2, ref, deg, octaves)
+    # away from the window edges (float rounding of the two computations) they agree exactly
+    assert (got == want).mean() >= 0.95 and got.shape == (m,)
+
+
+def test_consistent_similarity_keeps_a_rotated_zoomed_view_and_drops_twins():
+    """A view turned by 170 degrees and zoomed 3x (angles wrap at 360): every true correspondence kept; twins whose
+    frame turned the other way or changed scale by 4 octaves dropped; nothing to compare with keeps everything."""
+    from guidedmatch.geometry import consistent_similarity
+
+    rng = np.random.default_rng(0)
+    a1 = rng.uniform(0, 360, 200)
+    a2 = np.mod(a1 + 170 + rng.normal(0, 5, 200), 360)
+    s1 = rng.uniform(2, 10, 200)
+    s2 = 3 * s1 * 2.0 ** rng.normal(0, 0.1, 200)
+    a2[:10] = np.mod(a1[:10] - 10, 360)
+    s2[10:20] = s1[10:20] * 48
+    keep = consistent_similarity(a1, a2, s1, s2, np.ones(200, bool))
+    assert not keep[:20].any() and keep[20:].all()
+    assert consistent_similarity(a1, a2, s1, s2, np.zeros(200, bool)).all()

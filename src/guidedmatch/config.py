@@ -104,6 +104,12 @@ class MatcherConfig:
                                          # rotation: F and its band constrain nothing along the plane) and the final
                                          # matches still look planar (H inliers >= h_ratio * F inliers), drop the guided
                                          # matches that are not its inliers (Oxford wall 1-2: 2.2 % -> 0.6 % wrong)
+    frame_check: bool = True             # beyond the paper: drop the guided matches whose keypoint rotation or scale
+                                         # change disagrees with the pair's (the verified inliers' circular mean
+                                         # rotation and median log-scale ratio): a repeated structure's twin in the
+                                         # epipolar band passes F but not its frame (geometry.consistent_similarity)
+    frame_check_deg: float = 30.0        # frame_check: largest rotation difference from the pair's, degrees
+    frame_check_octaves: float = 1.0     # frame_check: largest |log2 scale ratio| difference from the pair's
     outside_window: Literal["drop", "band"] = "band"  # image-1 feature outside the SO window ω*: "drop" (paper
                                          # §III-B.2) or, when an F model exists and the feature lies within the x-extent
                                          # of the F inliers, "band": match it in the epipolar band only (beyond the paper)
@@ -168,6 +174,9 @@ class MatcherConfig:
         check_number(o, "strip_px", self.strip_px, lo=0, lo_open=True, allow_none=True)
         check_bool(o, "recheck", self.recheck)
         check_bool(o, "planar_recheck", self.planar_recheck)
+        check_bool(o, "frame_check", self.frame_check)
+        check_number(o, "frame_check_deg", self.frame_check_deg, lo=0, hi=180, lo_open=True)
+        check_number(o, "frame_check_octaves", self.frame_check_octaves, lo=0, lo_open=True)
         check_choice(o, "outside_window", self.outside_window, ("drop", "band"))
         check_number(o, "min_model_matches", self.min_model_matches, lo=8, integer=True)
         check_number(o, "seed", self.seed, lo=0, integer=True)
@@ -191,7 +200,7 @@ class MatcherConfig:
         printed alignment (c), the first model after ``update_every`` unguided correspondences (exact search, no
         verdict gate, no early exit), no automatic brute force, matches kept whatever the verdict. The two-view
         verdict is still reported."""
-        return cls(**{"recheck": False, "planar_recheck": False, "outside_window": "drop", "one_to_one": False, "alignment": "c",
+        return cls(**{"recheck": False, "planar_recheck": False, "frame_check": False, "outside_window": "drop", "one_to_one": False, "alignment": "c",
                       "start": "paper", "auto_bf": False, "unverified": "keep", **overrides})
 
     def replace(self, **changes) -> "MatcherConfig":

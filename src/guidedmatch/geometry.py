@@ -65,7 +65,7 @@ from .base import USAC_METHOD_NAMES, VERDICTS
 from .epipolar import estimate_fundamental, sampson_distance
 
 __all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "report_geometry",
-           "random_inlier_bound", "COLMAP_CONFIG", "consistent_frames", "fundamental_support", "spread_matches"]
+           "random_inlier_bound", "COLMAP_CONFIG", "consistent_frames", "consistent_similarity", "fundamental_support", "spread_matches"]
 
 # VERDICTS (verdict -> meaning) is defined in guidedmatch.base and found here too
 
@@ -309,6 +309,39 @@ def consistent_frames(angles1, angles2, tolerance_deg: float = 20.0) -> np.ndarr
     mask = np.zeros(len(d), bool)
     mask[ok] = np.abs(np.mod(d[ok] - best + 180.0, 360.0) - 180.0) <= tolerance_deg
     return mask
+
+
+def consistent_similarity(angles1, angles2, scales1, scales2, reference, max_deg: float = 30.0,
+                          max_octaves: float = 1.0) -> np.ndarray:
+    """Correspondences whose local frame changed like the pair's: rotation within ``max_deg`` of the circular mean
+    of ``angles2 - angles1`` over the ``reference`` correspondences (e.g. a verified model's inliers), and
+    ``log2(scales2 / scales1)`` within ``max_octaves`` of its median over them (Lowe 2004, §7.3: a correct
+    correspondence agrees with its neighbours' similarity; a repeated structure's twin in the epipolar band of F
+    satisfies F but, seen from elsewhere, usually not the frame). ``(M,) bool``; a correspondence without an
+    orientation (negative angle) or a scale (<= 0) is judged on what it has. All True when ``reference`` selects
+    nothing usable.
+
+    >>> a1 = np.array([10.0, 20.0, 30.0, 40.0, 50.0])
+    >>> s1 = np.ones(5)
+    >>> consistent_similarity(a1, a1 + [5, 0, -5, 90, 2], s1, s1 * [2, 2, 2, 2, 16], np.ones(5, bool)).tolist()
+    [True, True, True, False, False]
+    """
+    a1, a2 = (np.asarray(a, np.float64).reshape(-1) for a in (angles1, angles2))
+    s1, s2 = (np.asarray(s, np.float64).reshape(-1) for s in (scales1, scales2))
+    ref = np.asarray(reference, bool).reshape(-1)
+    keep = np.ones(len(a1), bool)
+    has_a = (a1 >= 0) & (a2 >= 0) & np.isfinite(a1) & np.isfinite(a2)
+    if (ref & has_a).any():
+        d = np.deg2rad(a2 - a1)
+        mean = np.angle(np.exp(1j * d[ref & has_a]).mean())
+        off = np.abs(np.angle(np.exp(1j * (d - mean))))
+        keep &= ~has_a | (off <= np.deg2rad(max_deg))
+    has_s = (s1 > 0) & (s2 > 0) & np.isfinite(s1) & np.isfinite(s2)
+    if (ref & has_s).any():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lr = np.log2(np.where(has_s, s2, 1.0) / np.where(has_s, s1, 1.0))
+        keep &= ~has_s | (np.abs(lr - np.median(lr[ref & has_s])) <= max_octaves)
+    return keep
 
 
 def fundamental_support(F, x1, x2, size1, size2, config: VerdictConfig | None = None) -> int:

@@ -35,8 +35,11 @@ def _start_local_cluster(n: int):
     with dask.config.set({"distributed.scheduler.allowed-failures": 0,
                           "distributed.worker.daemon": True,
                           "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        # logs up to ERROR silenced: a pair's failure comes back to the writer as the task's exception (reported
+        # by name); what the workers would print is a CommClosedError traceback from orphans whose parent was
+        # killed (seen under load in the kill -9 trials), after the run has already stopped
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.ERROR, env=dict(_SINGLE_THREAD_ENV))
+                               silence_logs=logging.CRITICAL, env=dict(_SINGLE_THREAD_ENV))
         return cluster, Client(cluster, set_as_default=False)
 
 

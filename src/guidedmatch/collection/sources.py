@@ -398,12 +398,13 @@ class ColmapSource(FeatureSource):
             descriptors = rows
             fkind = "user"
         scales = angles = None
+        # angles in OpenCV's convention, [0, 360) degrees (a negative angle means "no orientation" there)
         if kp.shape[1] == 4:
-            scales, angles = 2.0 * kp[:, 2], np.rad2deg(kp[:, 3])
+            scales, angles = 2.0 * kp[:, 2], np.mod(np.rad2deg(kp[:, 3]), 360.0)
         elif kp.shape[1] == 6:
             a11, a12, a21, a22 = kp[:, 2], kp[:, 3], kp[:, 4], kp[:, 5]
             scales = np.hypot(a11, a21) + np.hypot(a12, a22)  # 2 x mean of the two axis scales
-            angles = np.rad2deg(np.arctan2(a21, a11))
+            angles = np.mod(np.rad2deg(np.arctan2(a21, a11)), 360.0)
         xy = kp[:, :2] - COLMAP_PIXEL_OFFSET
         if len(descriptors) == 0:
             descriptors = descriptors.reshape(0, nbytes or 128)

@@ -286,6 +286,23 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
                 q, j, d = q[keep], j[keep], d[keep]
                 flags = {k: v[keep] for k, v in flags.items()}
                 geometry = geometry.with_inliers(geometry.inliers[keep])
+        dropped_frames = 0
+        f1, f2 = self.f1, self.f2
+        if (self.c.frame_check and geometry and len(q) and f1.angles is not None and f2.angles is not None
+                and f1.scales is not None and f2.scales is not None):
+            # repeated structure: a twin in the epipolar band satisfies F but not the pair's rotation / scale change;
+            # guided matches whose frame disagrees are dropped (unguided ones passed the global ratio test, as BF)
+            from ..geometry import consistent_similarity
+
+            same = consistent_similarity(np.asarray(f1.angles)[q], np.asarray(f2.angles)[j],
+                                         np.asarray(f1.scales)[q], np.asarray(f2.scales)[j], geometry.inliers,
+                                         self.c.frame_check_deg, self.c.frame_check_octaves)
+            keep = same
+            dropped_frames = int((~keep).sum())
+            if dropped_frames:
+                q, j, d = q[keep], j[keep], d[keep]
+                flags = {k: v[keep] for k, v in flags.items()}
+                geometry = geometry.with_inliers(geometry.inliers[keep])
         self.timing["verdict_s"] += time.perf_counter() - t0
         q, j, d, flags, geometry, dropped_unverified = _drop_unverified(self.c, q, j, d, flags, geometry,
                                                                         self.fallback)
@@ -307,6 +324,7 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
             phase_comparisons=phase_comparisons, fallbacks=tuple(self.fallbacks), config=self.c,
             details=dict(unguided_search=self.unguided_search, verdict_checks=tuple(self.checks),
                          early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons),
-                         dropped_unverified=dropped_unverified, dropped_off_homography=dropped_planar))
+                         dropped_unverified=dropped_unverified, dropped_off_homography=dropped_planar,
+                         dropped_off_frame=dropped_frames))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         return MatchResult(pairs, d, stats, flags, geometry)
