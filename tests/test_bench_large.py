@@ -53,3 +53,34 @@ def test_markdown_table_has_one_row_per_method():
     md = markdown(res)
     assert "| colmap_exhaustive | 10 | 1.000 |" in md and "| ours_retrieval | 1 | 0.100 |" in md
     assert "retrieval stage 0.1 s = 10.0 %" in md
+
+
+def test_models_are_judged_by_scene_and_a_mixed_model_is_named(tmp_path):
+    """judge_models: registered per scene = the scene's images in its largest model; any model holding two scene
+    labels is reported as mixing them; scenes without reference poses get none."""
+    from guidedmatch.evaluation.large_models import judge_models, models_markdown
+
+    scenes = {f"lund/{i}.jpg": "lund" for i in range(5)}
+    scenes.update({"photos/a.jpg": "photos/a.jpg", "photos/b.jpg": "photos/b.jpg"})
+    models = [[f"lund/{i}.jpg" for i in range(3)], ["lund/3.jpg", "lund/4.jpg", "photos/a.jpg"]]
+    j = judge_models(models, tmp_path, scenes, tmp_path)
+    assert j["models"] == 2 and j["registered"]["lund"] == 3 and j["registered"]["photos/b.jpg"] == 0
+    assert j["mixed"] == [{"model": 1, "scenes": {"lund": 2, "photos/a.jpg": 1}}]
+    assert j["scene_images"]["lund"] == 5 and j["poses"]["buddha"]["registered"] == 0
+    md = models_markdown({"maps": {"ours": {"wall_s": 1.0, "judged": j}}, "pipelines": {}})
+    assert "| ours | 1 | 2 | 1 |" in md
+
+
+def test_image_links_keep_the_names_and_read_the_data_in_place(tmp_path):
+    from guidedmatch.collection.image_folder import list_images
+    from guidedmatch.evaluation.large_models import image_links
+
+    data = tmp_path / "data"
+    (data / "a" / "images").mkdir(parents=True)
+    (data / "b").mkdir()
+    for n in ("a/images/1.jpg", "b/2.png"):
+        (data / n).write_bytes(b"x")
+    out = image_links(data, ["a/images/1.jpg", "b/2.png"], tmp_path / "links")
+    assert list_images(out) == ["a/images/1.jpg", "b/2.png"]
+    assert (out / "b/2.png").is_symlink() and (out / "b/2.png").resolve() == (data / "b/2.png").resolve()
+    image_links(data, ["a/images/1.jpg"], out)   # again: nothing to do, no error

@@ -110,6 +110,8 @@ class MatcherConfig:
                                          # epipolar band passes F but not its frame (geometry.consistent_similarity)
     frame_check_deg: float = 30.0        # frame_check: largest rotation difference from the pair's, degrees
     frame_check_octaves: float = 1.0     # frame_check: largest |log2 scale ratio| difference from the pair's
+    frame_check_scope: Literal["all", "guided"] = "all"  # frame_check: every match, or only the guided ones (the
+                                         # unguided ones passed the ratio test against all of image 2, as in BF)
     outside_window: Literal["drop", "band"] = "band"  # image-1 feature outside the SO window ω*: "drop" (paper
                                          # §III-B.2) or, when an F model exists and the feature lies within the x-extent
                                          # of the F inliers, "band": match it in the epipolar band only (beyond the paper)
@@ -177,6 +179,7 @@ class MatcherConfig:
         check_bool(o, "frame_check", self.frame_check)
         check_number(o, "frame_check_deg", self.frame_check_deg, lo=0, hi=180, lo_open=True)
         check_number(o, "frame_check_octaves", self.frame_check_octaves, lo=0, lo_open=True)
+        check_choice(o, "frame_check_scope", self.frame_check_scope, ("all", "guided"))
         check_choice(o, "outside_window", self.outside_window, ("drop", "band"))
         check_number(o, "min_model_matches", self.min_model_matches, lo=8, integer=True)
         check_number(o, "seed", self.seed, lo=0, integer=True)

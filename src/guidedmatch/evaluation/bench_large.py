@@ -24,6 +24,11 @@ Herz-Jesus-P25's scene (the same facade); every Unsplash photo is its own scene.
 Reference set of true pairs: COLMAP exhaustive's verified pairs with >= 100 inliers, minus those the scene labels
 show to be across scenes (their number is reported).
 
+4. with ``--map METHODS`` (or ``all``): COLMAP's incremental mapper on each of those databases, the models judged by
+   scene (models mixing scenes, registered images per scene, pose accuracy per scene with reference poses); with
+   ``--sfm``: ``guidedmatch sfm`` from an empty project on the same images, against the pycolmap pipelines (the
+   extraction + matching + mapping rows summed) -- :mod:`guidedmatch.evaluation.large_models`.
+
 Writes ``large.json`` (every number + run metadata), ``large.md`` and ``large.png`` (time vs recall). The machine
 is shared: times are noisy, ratios within one run are the numbers to read (the load average is recorded).
 

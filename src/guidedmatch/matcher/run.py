@@ -290,14 +290,14 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
         f1, f2 = self.f1, self.f2
         if (self.c.frame_check and geometry and len(q) and f1.angles is not None and f2.angles is not None
                 and f1.scales is not None and f2.scales is not None):
-            # repeated structure: a twin in the epipolar band satisfies F but not the pair's rotation / scale change;
-            # guided matches whose frame disagrees are dropped (unguided ones passed the global ratio test, as BF)
+            # repeated structure: a twin in the epipolar band satisfies F but not the pair's rotation / scale change:
+            # matches whose frame disagrees are dropped (frame_check_scope="guided": the guided ones only)
             from ..geometry import consistent_similarity
 
             same = consistent_similarity(np.asarray(f1.angles)[q], np.asarray(f2.angles)[j],
                                          np.asarray(f1.scales)[q], np.asarray(f2.scales)[j], geometry.inliers,
                                          self.c.frame_check_deg, self.c.frame_check_octaves)
-            keep = same
+            keep = same | (flags["phase"] == 0) if self.c.frame_check_scope == "guided" else same
             dropped_frames = int((~keep).sum())
             if dropped_frames:
                 q, j, d = q[keep], j[keep], d[keep]
