@@ -164,3 +164,11 @@ def test_table_and_main_wiring(tmp_path, monkeypatch):
     assert data["rows"][0]["details"][1]["case"] == "c" and "timestamp_utc" in data["meta"]
     with pytest.raises(Exception, match="unknown fault class"):
         bf.main(bf.build_parser().parse_args(["--out", str(tmp_path), "--faults", "nope"]))
+
+
+def test_kill_9_in_a_retrieval_and_expansion_run(coll, tmp_path):
+    """The retrieval stage, the shortlist and the expansion rounds killed at random moments: the rerun ends with
+    the uninterrupted retrieval run's tables and skips every pair stored before the kill."""
+    c = {k: v for k, v in coll.items() if k != "ref"}   # its own uninterrupted reference: the retrieval run's
+    row = bf.kill_colmap(c, tmp_path, "in-process, retrieval:4 + expansion", 3, np.random.default_rng(1))
+    assert (row.trials, row.survived, row.lost, row.corrupt, row.tracebacks) == (3, 3, 0, 0, 0), row.details

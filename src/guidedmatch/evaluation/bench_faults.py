@@ -24,6 +24,7 @@ What "survived" means per class:
 from __future__ import annotations
 
 import argparse
+import re
 import shutil
 import subprocess
 import sys
@@ -48,6 +49,9 @@ def add_arguments(parser) -> None:
                         help="faults: kill -9 trials of guidedmatch sfm per stage (default 4; --quick 1)")
     parser.add_argument("--fuzz-examples", type=int, default=None, metavar="N",
                         help="faults: fuzzed argument lists per subcommand (default 150; --quick 25)")
+    parser.add_argument("--kill-backends", default=None, metavar="LIST",
+                        help="faults: '|'-separated runs of guidedmatch colmap to kill (default all: "
+                             + " | ".join(KILL_BACKENDS) + ")")
     parser.add_argument("--faults", default=None, metavar="LIST",
                         help="faults: comma-separated subset of kill, sfm-kill, disk, writers, inputs, fuzz")
     parser.add_argument("--work", default=None, metavar="DIR",
@@ -63,7 +67,8 @@ FAULT_CLASSES = ("kill", "sfm-kill", "disk", "writers", "inputs", "fuzz")
 # ============================================================================================ helpers
 def _fresh(path: Path, src: Path | None = None) -> Path:
     """Remove ``path`` and its SQLite / lock / log side files; copy ``src`` there when given."""
-    for suffix in ("", "-wal", "-shm", "-journal", ".lock", ".guidedmatch.jsonl"):
+    for suffix in ("", "-wal", "-shm", "-journal", ".lock", ".guidedmatch.jsonl", ".retrieval.npz",
+                   ".expansion.json"):
         p = path.with_name(path.name + suffix)
         if p.is_dir():
             shutil.rmtree(p)
@@ -74,8 +79,24 @@ def _fresh(path: Path, src: Path | None = None) -> Path:
     return path
 
 
+#: the kill trials' runs of ``guidedmatch colmap``: backend name -> extra arguments (the retrieval run has the
+#: retrieval stage (vocabulary + shortlist), the shortlist's pairs and the expansion rounds to be killed in)
+KILL_BACKENDS = {"in-process": ["--workers", "0"], "dask": ["--workers", "2"],
+                 "in-process, retrieval:4 + expansion": ["--workers", "0", "--pairs", "retrieval:4"]}
+
+
 def _colmap_args(db: Path, backend: str) -> list:
-    return ["colmap", db, "--no-progress", "--workers", "0" if backend == "in-process" else "2"]
+    return ["colmap", db, "--no-progress", *KILL_BACKENDS[backend]]
+
+
+def _skipped(text: str) -> int | None:
+    """Pairs a rerun skipped as already done: the one summary line, or the sum over a staged run's stages
+    (shortlist, expansion rounds)."""
+    parsed = parse_skipped(text)
+    if parsed is not None:
+        return parsed[1]
+    stages = re.findall(r"(\d+) matched, (\d+) skipped", text)
+    return sum(int(b) for _, b in stages) if stages else None
 
 
 def _names_path(text: str, path) -> bool:
@@ -127,8 +148,8 @@ def kill_colmap(coll: dict, work: Path, backend: str, trials: int, rng: np.rando
         rerun = run_cli(_colmap_args(db, backend))
         final = db_state(db)
         diffs = compare_db(final, ref)
-        parsed = parse_skipped(rerun.stdout)
-        skipped = parsed[1] if parsed else 0
+        parsed = _skipped(rerun.stdout)
+        skipped = parsed or 0
         lost = max(0, len(committed) - skipped)
         orphans += bool(info["orphans"])
         ok = rerun.rc == 0 and not diffs and not broken and lost == 0 and parsed is not None
@@ -528,10 +549,15 @@ def main(args) -> int:
     fuzz_n = getattr(args, "fuzz_examples", None) or (25 if quick else 150)
     which = [w.strip() for w in (getattr(args, "faults", None) or ",".join(FAULT_CLASSES)).split(",") if w.strip()]
     unknown = set(which) - set(FAULT_CLASSES)
-    if unknown:
-        from ..errors import ConfigError
+    from ..errors import ConfigError
 
+    if unknown:
         raise ConfigError(f"--faults: unknown fault class(es) {sorted(unknown)}; choose from {FAULT_CLASSES}")
+    chosen = getattr(args, "kill_backends", None)
+    backends = [b.strip() for b in chosen.split("|")] if chosen else list(KILL_BACKENDS)
+    if set(backends) - set(KILL_BACKENDS):
+        raise ConfigError(f"--kill-backends: unknown {sorted(set(backends) - set(KILL_BACKENDS))}; choose from "
+                          f"{list(KILL_BACKENDS)}")
     meta = run_metadata(seed)
     t_start = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -595,7 +621,7 @@ def main(args) -> int:
         ref_h5 = make_h5_reference(coll, work) if {"disk", "writers"} & set(which) else None
         print(f"faults bench: {len(coll['names'])} images in {work}", flush=True)
         if "kill" in which:
-            for backend in ("in-process", "dask"):
+            for backend in backends:
                 step(f"kill {backend}", lambda b=backend: kill_colmap(coll, work, b, kills, rng))
         if {"sfm-kill", "disk", "writers"} & set(which):
             step("sfm kill", lambda: [r for r in kill_sfm(coll, work, sfm_kills if "sfm-kill" in which else 0, rng)
