@@ -5,6 +5,13 @@ import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+# no per-example time limit: the machines are shared, and hypothesis's 200 ms deadline failed a 16-row h5 round trip
+# at load 9 (472 ms); speed is measured in the benchmarks, not asserted in tests
+from hypothesis import settings as _hypothesis_settings  # noqa: E402
+
+_hypothesis_settings.register_profile("guidedmatch", deadline=None)
+_hypothesis_settings.load_profile("guidedmatch")
+
 
 @pytest.fixture(scope="session")
 def small_scene():
