@@ -401,7 +401,7 @@ def _check_database_path(database_path: Path) -> None:
 class _Writer:
     """Writes one image per transaction (camera, rig, image, frame, keypoints, descriptors) into an open database."""
 
-    def __init__(self, db, conf: ExtractionConfig, path: Path | None = None) -> None:
+    def __init__(self, db, conf: ExtractionConfig, path: Path) -> None:
         self.db, self.conf, self.path = db, conf, path
         self.shared = self.shared_rig = None
         if conf.single_camera and db.num_cameras() > 0:
@@ -417,8 +417,7 @@ class _Writer:
             raise InputError(f"single_camera: {f.name} is {f.width}x{f.height} but the shared camera is "
                              f"{self.shared.width}x{self.shared.height}")
         desc = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(f.descriptors))
-        if self.path is not None:
-            check_database_space(self.path, np.asarray(f.keypoints).nbytes + np.asarray(f.descriptors).nbytes)
+        check_database_space(self.path, np.asarray(f.keypoints).nbytes + np.asarray(f.descriptors).nbytes)
         with pycolmap.DatabaseTransaction(db):
             old = db.read_image_with_name(f.name)
             if old is None:

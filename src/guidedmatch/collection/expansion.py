@@ -88,56 +88,32 @@ def read_verified_graph(database_path, min_inliers: int = 1, *, tried_from: str 
 
 
 def _verified_graph_pycolmap(database_path, min_inliers: int, tried_from: str):
-    """:func:`read_verified_graph` through pycolmap (for a database this process already holds with pycolmap)."""
-    import pycolmap
-
+    """:func:`read_verified_graph` through pycolmap (for a database this process already holds with pycolmap):
+    :func:`~guidedmatch.collection.sinks.done_pairs_in` and :func:`~guidedmatch.collection.sinks.verified_pairs_in`,
+    as a sink reads them."""
+    from .sinks import done_pairs_in, verified_pairs_in
     from .sources import _open_colmap
 
     db = _open_colmap(Path(database_path))
     try:
-        names = {int(im.image_id): im.name for im in db.read_all_images()}
-
-        def pairs(pids):
-            out = []
-            for pid in pids:
-                i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
-                a, b = names.get(int(i1)), names.get(int(i2))
-                out.append(frozenset((a, b)) if a is not None and b is not None else None)
-            return out
-
-        pids, nums = db.read_two_view_geometry_num_inliers()
-        verified = {s for s, n in zip(pairs(pids), nums) if s is not None and int(n) >= min_inliers}
-        exists = db.exists_two_view_geometry if tried_from == "geometry" else db.exists_matches
-        ids = sorted(names)
-        if len(ids) * (len(ids) - 1) // 2 <= 50_000:  # every pair checked (the bulk readers skip empty rows)
-            tried = {frozenset((names[a], names[b])) for i, a in enumerate(ids) for b in ids[i + 1:] if exists(a, b)}
-        else:   # bulk: a pair with an empty row (an image without features) is missed and matched again
-            bulk = set(db.read_num_matches()[0]) | set(pids)
-            tried = {s for s, pid in zip(pairs(sorted(bulk)), sorted(bulk))
-                     if s is not None and exists(*pycolmap.pair_id_to_image_pair(int(pid)))}
+        ids = {im.name: int(im.image_id) for im in db.read_all_images()}
+        tried = done_pairs_in(db, ids, "ours" if tried_from == "geometry" else "matches")
+        return tried, verified_pairs_in(db, ids, min_inliers)
     finally:
         db.close()
-    return tried, verified
 
 
 def sink_verified_graph(sink, min_inliers: int = 1):
     """``(tried, verified)`` as :func:`read_verified_graph`, read through the sink's own database connection (the
     writer's view: a separate connection did not always see the pairs an in-process run had just written) --
     ``tried`` = ``sink.done_pairs()``, ``verified`` = pairs whose two-view geometry has ``min_inliers`` inliers."""
-    import pycolmap
+    from .sinks import verified_pairs_in
 
     db = getattr(sink, "_db", None)
     if db is None:
         return read_verified_graph(sink.path, min_inliers,
                                    tried_from="geometry" if sink.geometry == "ours" else "matches")
-    pids, nums = db.read_two_view_geometry_num_inliers()
-    verified = set()
-    for pid, num in zip(pids, nums):
-        if int(num) >= min_inliers:
-            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
-            a, b = sink._names.get(int(i1)), sink._names.get(int(i2))
-            if a is not None and b is not None:
-                verified.add(frozenset((a, b)))
+    verified = verified_pairs_in(db, sink._ids, min_inliers)
     return set(sink.done_pairs()), verified
 
 

@@ -186,14 +186,16 @@ class MatchSink:
         self.close()
 
 
-def check_database_space(database_path: Path, nbytes: int) -> None:
+def check_database_space(database_path: Path, nbytes: int, kept: str = "the images already extracted are kept"
+                         ) -> None:
     """OutputError naming the database when a transaction of ``nbytes`` might not fit on its disk (or under the
-    process's file size limit). pycolmap commits in a C++ destructor, where SQLite's "database or disk is full"
-    aborts the whole process instead of raising, so the room is checked before each image is written."""
+    process's file size limit); ``kept`` says what a rerun keeps. pycolmap commits in a C++ destructor, where
+    SQLite's "database or disk is full" aborts the whole process instead of raising, so every writer checks the room
+    before each transaction."""
     database_path = Path(database_path)
     folder = database_path.parent if str(database_path.parent) else Path(".")
     problem = _space_problem([database_path, database_path.with_name(database_path.name + "-wal")], folder,
-                             2 * int(nbytes) + SPACE_MARGIN, kept="the images already extracted are kept")
+                             2 * int(nbytes) + SPACE_MARGIN, kept=kept)
     if problem:
         raise OutputError(f"cannot write the COLMAP database {database_path}: {problem}")
 

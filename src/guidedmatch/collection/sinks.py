@@ -25,7 +25,8 @@ import numpy as np
 
 from ..errors import ConfigError, DatabaseError, InputError, OutputError
 from .hloc_sink import H5MatchesSink, names_to_pair
-from .sink_base import SPACE_MARGIN, MatchSink, WriteLock, _check_pairs, _check_writable, _space_problem
+from .sink_base import MatchSink, WriteLock, _check_pairs, _check_writable, check_database_space
+from .sink_base import SPACE_MARGIN  # noqa: F401 - found here by the fault bench and the tests
 
 __all__ = ["MatchSink", "ColmapSink", "H5MatchesSink", "names_to_pair", "WriteLock", "colmap_pixel_geometry",
            "cap_two_view_inliers"]
@@ -56,6 +57,53 @@ def colmap_pixel_geometry(F: np.ndarray | None, H: np.ndarray | None, swap: bool
 
 
 # ====================================================================== COLMAP
+#: done_pairs_in() checks every image pair exactly up to this many pairs (50,000 ~ 0.6 s), else bulk reads
+EXACT_PAIRS = 50_000
+
+
+def _pair_names(names: dict[int, str], pair_id: int) -> frozenset[str] | None:
+    import pycolmap
+
+    i1, i2 = pycolmap.pair_id_to_image_pair(int(pair_id))
+    a, b = names.get(int(i1)), names.get(int(i2))
+    return frozenset((a, b)) if a is not None and b is not None else None
+
+
+def done_pairs_in(db, ids: dict[str, int], geometry: str = "ours", candidates=None, *,
+                  exact_pairs: int = EXACT_PAIRS) -> set[frozenset[str]]:
+    """Pairs of the open ``pycolmap.Database`` ``db`` (images ``ids``: name -> image id) with a two-view geometry row
+    (``geometry="ours"``) or a matches row (otherwise).
+
+    With ``candidates`` (pairs of names) each one is checked exactly (~12 us per pair). Without, databases of up to
+    ``exact_pairs`` image pairs (~320 images) are checked pair by pair too; larger ones are read with pycolmap's
+    bulk readers, which skip rows with zero matches and no geometry matrix: such a pair (an image without features)
+    is matched again on resume and its rows are replaced (same result).
+    """
+    import pycolmap
+
+    exists = db.exists_two_view_geometry if geometry == "ours" else db.exists_matches
+    if candidates is None and len(ids) * (len(ids) - 1) // 2 <= exact_pairs:
+        names = sorted(ids)
+        candidates = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    if candidates is not None:
+        return {frozenset((a, b)) for a, b in candidates if a in ids and b in ids and exists(ids[a], ids[b])}
+    pids = set(db.read_num_matches()[0])
+    if geometry == "ours":
+        geo_ids = set(db.read_two_view_geometry_num_inliers()[0])
+        geo_ids |= set(db.read_two_view_geometries()[0])
+        pids = geo_ids | {p for p in pids - geo_ids if exists(*pycolmap.pair_id_to_image_pair(int(p)))}
+    by_id = {v: k for k, v in ids.items()}
+    return {s for s in (_pair_names(by_id, p) for p in pids) if s is not None}
+
+
+def verified_pairs_in(db, ids: dict[str, int], min_inliers: int = 1) -> set[frozenset[str]]:
+    """Pairs of the open ``pycolmap.Database`` ``db`` (images ``ids``: name -> image id) whose two-view geometry has
+    at least ``min_inliers`` inlier matches."""
+    by_id = {v: k for k, v in ids.items()}
+    pids, nums = db.read_two_view_geometry_num_inliers()
+    return {s for pid, num in zip(pids, nums) if int(num) >= min_inliers and (s := _pair_names(by_id, pid)) is not None}
+
+
 class ColmapSink(MatchSink):
     """Write matches (and two-view geometries) into an existing COLMAP database through ``pycolmap.Database``.
 
@@ -75,8 +123,7 @@ class ColmapSink(MatchSink):
     """
 
     kind = "colmap"
-    #: ``done_pairs()`` checks every image pair exactly up to this many pairs (50,000 ~ 0.6 s), else bulk reads.
-    EXACT_PAIRS = 50_000
+    EXACT_PAIRS = EXACT_PAIRS  # done_pairs(): exact up to this many image pairs (module constant)
 
     def __init__(self, database_path: str | os.PathLike, geometry: str = "ours", *, overwrite: bool = False) -> None:
         from ..validation import check_bool, check_choice
@@ -110,48 +157,12 @@ class ColmapSink(MatchSink):
         except KeyError:
             raise InputError(f"image {name!r} is not in COLMAP database {self.path}") from None
 
-    def _pair_names(self, pair_id: int) -> frozenset[str] | None:
-        import pycolmap
-
-        i1, i2 = pycolmap.pair_id_to_image_pair(int(pair_id))
-        a, b = self._names.get(int(i1)), self._names.get(int(i2))
-        return frozenset((a, b)) if a is not None and b is not None else None
-
-    def _exists(self, i1: int, i2: int) -> bool:
-        db = self._db
-        if self.geometry == "ours":
-            return db.exists_two_view_geometry(i1, i2)
-        return db.exists_matches(i1, i2)
-
     def done_pairs(self, candidates=None) -> set[frozenset[str]]:
-        """Pairs already complete: with a two-view geometry row (``geometry="ours"``) or a matches row.
-
-        With ``candidates`` (pairs of names) each one is checked exactly (~12 us per pair). Without, databases of
-        up to ``EXACT_PAIRS`` image pairs (~320 images) are checked pair by pair too; larger ones are read with
-        pycolmap's bulk readers, which skip rows with zero matches and no geometry matrix: such a pair (an image
-        without features) is matched again on resume and its rows are replaced (same result).
-        """
+        """Pairs already complete: with a two-view geometry row (``geometry="ours"``) or a matches row
+        (:func:`done_pairs_in`; empty with ``overwrite``)."""
         if self.overwrite:
             return set()
-        db = self._db
-        if candidates is None and len(self._ids) * (len(self._ids) - 1) // 2 <= self.EXACT_PAIRS:
-            names = sorted(self._ids)
-            candidates = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
-        if candidates is not None:
-            out = set()
-            for a, b in candidates:
-                if a in self._ids and b in self._ids and self._exists(self._ids[a], self._ids[b]):
-                    out.add(frozenset((a, b)))
-            return out
-        ids = set(db.read_num_matches()[0])
-        if self.geometry == "ours":
-            geo_ids = set(db.read_two_view_geometry_num_inliers()[0])
-            geo_ids |= set(db.read_two_view_geometries()[0])
-            import pycolmap
-
-            ids = geo_ids | {p for p in ids - geo_ids
-                             if db.exists_two_view_geometry(*pycolmap.pair_id_to_image_pair(int(p)))}
-        return {s for s in map(self._pair_names, ids) if s is not None}
+        return done_pairs_in(self._db, self._ids, self.geometry, candidates, exact_pairs=self.EXACT_PAIRS)
 
     def _two_view(self, p: np.ndarray, geometry, swap: bool):
         import pycolmap
@@ -210,13 +221,9 @@ class ColmapSink(MatchSink):
 
     def check_space(self, nbytes: int = 0) -> None:
         """OutputError naming the database when a transaction of ``nbytes`` might not fit on its disk (or under
-        the process's file size limit). Checked before each transaction: pycolmap commits a transaction in a C++
-        destructor, where SQLite's "database or disk is full" aborts the process instead of raising."""
-        files = [self.path, self.path.with_name(self.path.name + "-wal")]
-        problem = _space_problem(files, self.path.parent if str(self.path.parent) else Path("."),
-                                 2 * int(nbytes) + SPACE_MARGIN)
-        if problem:
-            raise OutputError(f"cannot write the COLMAP database {self.path}: {problem}")
+        the process's file size limit): :func:`~guidedmatch.collection.sink_base.check_database_space`, checked
+        before each transaction."""
+        check_database_space(self.path, nbytes, kept="finished pairs are kept")
 
     @staticmethod
     def _write_rows(db, i1: int, i2: int, m: np.ndarray, tvg) -> None:

@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import DatabaseError, ImageReadError, InputError, OutputError
 from ..features import BINARY_KINDS, DETECTORS, Features
 from .image_folder import IMAGE_EXTENSIONS
-from .sink_base import note_pycolmap_open, pycolmap_opened
+from .sink_base import open_pycolmap_database, pycolmap_opened
 
 __all__ = ["FeatureSource", "ColmapSource", "H5Source", "open_source", "images_to_database", "IMAGE_EXTENSIONS",
            "COLMAP_PIXEL_OFFSET"]
@@ -206,8 +206,6 @@ def _open_colmap(path: Path, busy_timeout: float = 30.0):
     ("database is locked"). The open is retried: for up to ``busy_timeout`` s while a guidedmatch sink holds the
     database's write lock (its transactions last milliseconds), else for 2 s.
     """
-    import pycolmap
-
     if not path.exists():
         raise DatabaseError(f"COLMAP database not found: {path}")
     if path.is_dir():
@@ -226,9 +224,7 @@ def _open_colmap(path: Path, busy_timeout: float = 30.0):
     delay = 0.02
     while True:
         try:
-            db = pycolmap.Database.open(str(path))
-            note_pycolmap_open(path)
-            return db
+            return open_pycolmap_database(path)
         except Exception as exc:  # pycolmap raises RuntimeError / ValueError with SQLite's message
             problem = _sqlite_problem(path) if probe else None
             if problem:

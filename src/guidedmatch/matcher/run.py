@@ -135,6 +135,12 @@ def _match_bf(c: MatcherConfig, f1, f2, d1, d2, binary, mode: Mode, auto_reason:
 
 
 # ============================================================================================== the guided run
+def _kept(keep: np.ndarray, q, j, d, flags: dict, geometry):
+    """The matches selected by ``keep`` (their flags, and the verdict reported over them)."""
+    return (q[keep], j[keep], d[keep], {k: v[keep] for k, v in flags.items()},
+            geometry.with_inliers(geometry.inliers[keep]))
+
+
 class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
     """State of one guided match (not public); :meth:`run` is the method in order."""
 
@@ -283,9 +289,7 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
             keep = (flags["phase"] == 0) | geometry.inliers
             dropped_planar = int((~keep).sum())
             if dropped_planar:
-                q, j, d = q[keep], j[keep], d[keep]
-                flags = {k: v[keep] for k, v in flags.items()}
-                geometry = geometry.with_inliers(geometry.inliers[keep])
+                q, j, d, flags, geometry = _kept(keep, q, j, d, flags, geometry)
         dropped_frames = 0
         f1, f2 = self.f1, self.f2
         if (self.c.frame_check and geometry and len(q) and f1.angles is not None and f2.angles is not None
@@ -300,9 +304,7 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
             keep = same | (flags["phase"] == 0) if self.c.frame_check_scope == "guided" else same
             dropped_frames = int((~keep).sum())
             if dropped_frames:
-                q, j, d = q[keep], j[keep], d[keep]
-                flags = {k: v[keep] for k, v in flags.items()}
-                geometry = geometry.with_inliers(geometry.inliers[keep])
+                q, j, d, flags, geometry = _kept(keep, q, j, d, flags, geometry)
         self.timing["verdict_s"] += time.perf_counter() - t0
         q, j, d, flags, geometry, dropped_unverified = _drop_unverified(self.c, q, j, d, flags, geometry,
                                                                         self.fallback)
