@@ -9,7 +9,7 @@ Protocol, per scene with reference poses (:data:`SCENES`):
    * ``ours``: ``guidedmatch colmap DB`` at its defaults;
    * ``ours+cap``: the same database, then :func:`guidedmatch.collection.sinks.cap_two_view_inliers` with 1000 --
      exactly what ``guidedmatch colmap --max-inliers-per-pair 1000`` runs after matching (``guidedmatch sfm``'s
-     default); its time is ``ours``' plus the cap's;
+     default); its time is ``ours``' plus the cap's; ``ours+capN``: the same with a cap of N (e.g. ``ours+cap500``);
    * analysis variants (:mod:`guidedmatch.evaluation.accuracy_analysis`): a method's database rewritten to remove or
      restore one candidate cause;
 3. ``pycolmap.incremental_mapping`` with ``IncrementalPipelineOptions.random_seed`` = 0, 1, 2 (largest model);
@@ -51,6 +51,19 @@ BASE_METHODS = ("colmap", "ours", "ours+cap")
 RESCUE_METHODS = ("ours+rescue", "ours+rescue+cap")
 SEEDS = (0, 1, 2)
 CAP = 1000  # inliers per pair of ``ours+cap`` (guidedmatch sfm's default)
+
+
+def cap_of(method: str) -> int | None:
+    """The inlier cap of a capped method: ``ours+cap`` -> :data:`CAP`, ``ours+capN`` -> N (another cap to compare),
+    else None.
+
+    >>> cap_of("ours+cap"), cap_of("ours+cap500"), cap_of("ours"), cap_of("ours+capx")
+    (1000, 500, None, None)
+    """
+    if method == "ours+cap":
+        return CAP
+    tail = method[len("ours+cap"):] if method.startswith("ours+cap") else ""
+    return int(tail) if tail.isdigit() and int(tail) > 0 else None
 
 
 def _say(text: str) -> None:
@@ -159,14 +172,14 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         t = _timed_process([sys.executable, "-c", OURS_MATCH_SCRIPT, "colmap", str(db), "--no-progress", "--log",
                             "none"], mdir / "match.log")
         rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB"}
-    elif method == "ours+cap":
+    elif cap_of(method):
         base = match("ours", cache, threads)
         copy_database(cache / "ours" / "database.db", db)
         from ..collection.sinks import cap_two_view_inliers
 
-        cap = cap_two_view_inliers(db, CAP)
+        cap = cap_two_view_inliers(db, cap_of(method))
         rec = {"method": method, "match_s": base["match_s"] + cap["time_s"], "cap": cap,
-               "command": f"guidedmatch colmap DB --max-inliers-per-pair {CAP}"}
+               "command": f"guidedmatch colmap DB --max-inliers-per-pair {cap_of(method)}"}
     elif method.startswith("ours@"):   # ours with matcher settings: ours@max_unguided=0.1 (guidedmatch colmap --config)
         copy_database(cache / "features.db", db)
         warm_up(cache, mdir)
@@ -428,10 +441,10 @@ def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int,
         rt = retime(cache, repeats, threads)
         med = {w: float(np.median(rt[w])) for w in ("colmap", "ours")}
         for r in rows:
-            base = r["method"] if r["method"] in med else ("ours" if r["method"] == "ours+cap" else None)
+            base = r["method"] if r["method"] in med else ("ours" if cap_of(r["method"]) else None)
             if base and "error" not in r:
                 r["match_s_first"] = r["match_s"]
-                r["match_s"] = med[base] + (r["match"].get("cap", {}).get("time_s", 0.0) if r["method"] == "ours+cap"
+                r["match_s"] = med[base] + (r["match"].get("cap", {}).get("time_s", 0.0) if cap_of(r["method"])
                                             else 0.0)
                 r["retime"] = {"runs": rt[base], "load": rt["load"]}
     return [next(r for r in rows if r["method"] == m) for m in methods if any(r["method"] == m for r in rows)]
@@ -476,6 +489,8 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
                   "ours+rescue": "ours, then collection.rescue.rescue_pairs (rejected pairs matched by COLMAP's matcher, "
                                  "kept when a third view confirms them)",
                   "ours+rescue+cap": "ours+rescue, then the cap",
+                  **{m: f"guidedmatch colmap DB --max-inliers-per-pair {cap_of(m)} (another cap)"
+                     for m in (r["method"] for r in allrows) if cap_of(m) and m != "ours+cap"},
                   **{m: f"guidedmatch colmap DB --config {m[5:]}" for m in (r["method"] for r in allrows)
                      if m.startswith("ours@")},
                   **{k: f"analysis, not a method: {v[1]} (matching time: the base's)" for k, v in VARIANTS.items()}}
@@ -522,9 +537,10 @@ def main(args) -> int:
 
     methods = [m for m in (args.methods or ",".join(BASE_METHODS)).split(",") if m]
     known = BASE_METHODS + RESCUE_METHODS + tuple(VARIANTS)
-    bad = [m for m in methods if m not in known and not m.startswith("ours@")]
+    bad = [m for m in methods if m not in known and not m.startswith("ours@") and not cap_of(m)]
     if bad:
-        raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(known)}")
+        raise ConfigError(f"unknown method(s) {bad}; known: {', '.join(known)}, ours+capN (a cap of N inliers), "
+                          "ours@KEY=VALUE (a matcher setting)")
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s]
     except ValueError:
