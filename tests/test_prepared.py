@@ -3,6 +3,8 @@ import pickle
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from guidedmatch import kernels
 from guidedmatch.errors import ConfigError, InputError
@@ -145,3 +147,27 @@ def test_prepared_non_finite_descriptors_are_still_refused(bad):
         gm.match(good, p)
     with pytest.raises(InputError, match="NaN/inf"):
         gm.match(p, good)
+
+
+@settings(max_examples=60)
+@given(seed=st.integers(0, 2**31 - 1), rows=st.integers(1, 12), nlist=st.integers(2, 40), nprobe=st.integers(1, 6),
+       dupes=st.booleans(), slack=st.sampled_from([0.0, 1e-3, 10.0, 1e9]))
+def test_exact_cells_equal_the_per_row_exact_top(seed, rows, nlist, nprobe, dupes, slack):
+    """search2's near-tie step, one pass for all rows, against exact_top_among row by row (the slow reference),
+    with repeated centroids (exact ties: the lower index first) and bounds from none to every centroid."""
+    from guidedmatch.exact import exact_top_among
+    from guidedmatch.prepared import _exact_cells
+
+    rng = np.random.default_rng(seed)
+    nprobe = min(nprobe, nlist)
+    cent = rng.integers(0, 4, (nlist, 8)).astype(np.float32)  # few values: many equal distances
+    if dupes:
+        cent[nlist // 2:] = cent[:nlist - nlist // 2]
+    q = rng.integers(0, 4, (rows, 8)).astype(np.float32)
+    approx = ((q[:, None, :] - cent[None]) ** 2).sum(-1) + rng.uniform(-0.5, 0.5, (rows, nlist))
+    delta = np.full(rows, slack)
+    idx, sq = _exact_cells(q, cent, approx, delta, nprobe)
+    for r in range(rows):
+        near = np.flatnonzero(approx[r] <= np.sort(approx[r])[nprobe - 1] + 2.0 * delta[r])
+        want_i, want_d = exact_top_among(q[r], cent, near, nprobe)
+        assert idx[r].tolist() == want_i.tolist() and sq[r].tolist() == want_d.tolist()

@@ -246,11 +246,9 @@ class PreparedImage:
             if len(bad):  # a near-tie at the nprobe-th cell: those queries' cells exactly, among every centroid the
                 # bound cannot rule out (approximate distance within 2 delta of the nprobe-th)
                 Iq, Dq = Iq.copy(), Dq.copy()
-                approx = (qn[bad, None] + cn[None, :]) - 2.0 * (q[bad] @ cent.T)
-                for r, i in enumerate(bad):
-                    near = np.flatnonzero(approx[r] <= np.sort(approx[r])[nprobe - 1] + 2.0 * delta[i])
-                    Iq[i], sq = exact.exact_top_among(q[i], cent, near, nprobe)
-                    Dq[i] = sq.astype(np.float32)
+                Iq[bad], sq = _exact_cells(q[bad], cent, (qn[bad, None] + cn[None, :]) - 2.0 * (q[bad] @ cent.T),
+                                           delta[bad], nprobe)
+                Dq[bad] = sq.astype(np.float32)
         # cells in index order: the scan order, hence faiss's order among equal distances, is the same on every CPU
         # (faiss ignores the coarse distances of these non-residual indexes)
         o = np.argsort(Iq, axis=1, kind="stable")
@@ -268,6 +266,22 @@ class PreparedImage:
             top, sq = exact.exact_top(q, self.features.descriptors, I, D, 2, gamma=exact.sum_gamma(q.shape[1]),
                                       domain=lambda i: self._list_members(Iq[i]))
         return top[:, 0], sq[:, 0], top[:, 1], sq[:, 1], comparisons
+
+
+def _exact_cells(q: np.ndarray, cent: np.ndarray, approx: np.ndarray, delta: np.ndarray, nprobe: int):
+    """Exact nearest ``nprobe`` centroids of each query row ``q (R, D)`` among the centroids its approximate
+    distances ``approx (R, C)`` cannot rule out (within ``2 delta`` of its ``nprobe``-th): ``(idx (R, nprobe),
+    sq (R, nprobe) float64)``, equal distances by the lower index (:func:`guidedmatch.exact.exact_top_among` per row,
+    in one pass: one padded candidate matrix through :func:`guidedmatch.exact.sqdist_rows`)."""
+    near = approx <= (np.sort(approx, axis=1)[:, nprobe - 1] + 2.0 * delta)[:, None]
+    count = near.sum(axis=1)
+    cand = np.argsort(~near, axis=1, kind="stable")[:, :max(int(count.max()), nprobe)]  # each row's near, ascending
+    cand[np.arange(cand.shape[1])[None, :] >= count[:, None]] = -1                       # padding: distance inf
+    dd = exact.sqdist_rows(np.ascontiguousarray(q), cent, np.ascontiguousarray(cand, np.int64))
+    o = np.argsort(dd, axis=1, kind="stable")[:, :nprobe]  # stable: equal distances keep the lower index
+    r = np.arange(len(q))[:, None]
+    sq = dd[r, o]
+    return np.where(np.isfinite(sq), cand[r, o], -1), sq
 
 
 class _faiss_threads:
