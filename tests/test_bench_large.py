@@ -84,3 +84,30 @@ def test_image_links_keep_the_names_and_read_the_data_in_place(tmp_path):
     assert list_images(out) == ["a/images/1.jpg", "b/2.png"]
     assert (out / "b/2.png").is_symlink() and (out / "b/2.png").resolve() == (data / "b/2.png").resolve()
     image_links(data, ["a/images/1.jpg"], out)   # again: nothing to do, no error
+
+
+def test_bench_sfm_set_large_runs_bench_large_with_the_pipelines_and_sfm(tmp_path, monkeypatch):
+    """`guidedmatch bench sfm --set large` = bench large's photos -> model rows (COLMAP exhaustive and vocabulary
+    tree, mapped, and guidedmatch sfm), in OUT/large, data and work folders passed on."""
+    from guidedmatch.cli import main as cli_main
+    from guidedmatch.evaluation import bench_large
+
+    seen = []
+    monkeypatch.setattr(bench_large, "main", lambda argv=None: seen.append(argv) or 0)
+    assert cli_main(["bench", "sfm", "--set", "large", "--data", str(tmp_path), "--work", str(tmp_path / "w"),
+                     "--out", str(tmp_path / "out")]) == 0
+    argv = seen[0]
+    assert argv[argv.index("--out") + 1] == str(tmp_path / "out" / "large") and "--sfm" in argv
+    assert argv[argv.index("--data") + 1] == str(tmp_path) and argv[argv.index("--work") + 1] == str(tmp_path / "w")
+    assert set(argv[argv.index("--map") + 1].split(",")) == {"colmap_exhaustive", "colmap_vocabtree"}
+    assert {"colmap_exhaustive", "colmap_vocabtree", "ours_retrieval_expand"} <= set(argv[argv.index("--methods") + 1].split(","))
+
+
+def test_bench_large_without_its_data_is_a_clear_error(tmp_path, capsys):
+    import pytest
+
+    from guidedmatch.evaluation.bench_large import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--data", str(tmp_path)])
+    assert e.value.code == 2 and "no collections/ folder" in capsys.readouterr().err

@@ -23,6 +23,11 @@ DELEGATED = {
 }
 
 
+#: ``bench sfm --set large``: the pycolmap pipelines' matchers (and ours with retrieval + expansion, which
+#: ``guidedmatch sfm`` picks on this many images) on the 220-image collection, then their mapper and guidedmatch sfm
+LARGE_SFM_METHODS = "colmap_exhaustive,colmap_vocabtree,ours_retrieval_expand"
+
+
 def delegated_bench(argv: list[str]):
     """``(namespace, module)`` when ``argv`` is ``[--debug] bench NAME ...`` with NAME in :data:`DELEGATED`, else None."""
     import argparse
@@ -68,6 +73,13 @@ def cmd_experiment(args) -> int:
 
 def cmd_bench(args) -> int:
     writable_folder(args.out)
+    if args.which == "sfm" and args.set == "large":  # the 220-image collection: bench large's photos -> model rows
+        from ..evaluation import bench_large
+
+        return int(bench_large.main([*(["--data", args.data] if args.data else []),
+                                     *(["--work", args.work] if args.work else []),
+                                     "--out", str(Path(args.out) / "large"), "--methods", LARGE_SFM_METHODS,
+                                     "--map", "colmap_exhaustive,colmap_vocabtree", "--sfm"]) or 0)
     if args.which == "sfm":
         from ..evaluation import bench_sfm
 
@@ -125,6 +137,12 @@ def add_commands(sub, parents) -> None:
     b.add_argument("--methods", default=None, help="sfm: comma-separated subset of colmap, colmap_guided, "
                    "so+epi+ia+ours, so+epi+ia+colmap, epi+ours, epi+colmap, colmap+cap, so+epi+ia+ours+cap (+cap: at "
                    "most 1000 inliers per pair to the mapper, as guidedmatch sfm does)")
+    b.add_argument("--set", default="p8", choices=("p8", "large"),
+                   help="sfm: p8 = Herz-Jesus-P8 (or --scene), median of --repeats alternating runs; large = the "
+                   "220-image collection (data/collections + Herz-Jesus-P8 + the Unsplash photos): guidedmatch sfm vs "
+                   "the pycolmap pipeline with exhaustive and with vocabulary-tree matching, one run each, per-scene "
+                   "registration, models and poses (bench large --sfm; cached in --work, default ~/.cache/guidedmatch/"
+                   "large; COLMAP exhaustive takes ~16 min there)")
     b.add_argument("--threads", type=positive_int, default=2, help="sfm: CPU threads for COLMAP (default 2)")
     b.add_argument("--work", default=None, help="sfm: folder for the databases and models (default OUT/work; "
                    "extracted features are reused by a rerun)")

@@ -475,7 +475,7 @@ def snapshot_figure(res: dict, path: Path) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", default=os.environ.get("GUIDEDMATCH_DATA", "/work/shared/data"))
+    p.add_argument("--data", default=None, help="data folder (default: $GUIDEDMATCH_DATA or ../shared/data)")
     p.add_argument("--out", default="benchmarks/results/large")
     p.add_argument("--work", default=default_cache("large"), help="databases and cached results (not in the repo)")
     p.add_argument("--k", type=int, default=20, help="images per image: our retrieval:K and COLMAP's num_images")
@@ -495,6 +495,13 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(p)
     a = p.parse_args(argv)
+    from ..datasets import data_root
+
+    root = data_root(a.data)
+    if root is None or not (root / "collections").is_dir():
+        p.error(f"no collections/ folder in the data folder {root or a.data or '(none found)'}: pass --data DIR or "
+                "set GUIDEDMATCH_DATA")
+    a.data = str(root)
     if a.snapshot:
         print(json.dumps(snapshot(Path(a.data), Path(a.out), Path(a.work), a.k), indent=1, default=str))
         return 0
