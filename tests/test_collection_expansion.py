@@ -116,44 +116,6 @@ def test_rounds_add_the_triangle_closing_pairs_until_nothing_new_is_verified(cha
     assert not any(iso in p for p in verified)
 
 
-def test_one_local_cluster_serves_every_stage_and_gives_the_in_process_database(chain_db, tmp_path, monkeypatch):
-    """With worker processes the shortlist starts one local cluster and every round runs on it (warm caches, no
-    start-up per round): the same tables as an in-process run, one cluster start, closed at the end."""
-    from guidedmatch.collection import dask_backend
-    from guidedmatch.collection.sinks import ColmapSink
-    from guidedmatch.collection.sources import ColmapSource
-
-    ref = tmp_path / "ref.db"
-    shutil.copyfile(chain_db, ref)
-    _run(ref)
-    starts, closed = [], []
-    real_start, real_close = dask_backend._start_local_cluster, dask_backend.KeptCluster.close
-
-    def counting_start(n):
-        starts.append(n)
-        return real_start(n)
-
-    def counting_close(self):
-        closed.append(self.started)
-        real_close(self)
-
-    monkeypatch.setattr(dask_backend, "_start_local_cluster", counting_start)
-    monkeypatch.setattr(dask_backend.KeptCluster, "close", counting_close)
-    db = tmp_path / "db.db"
-    shutil.copyfile(chain_db, db)
-    src = ColmapSource(db)
-    with ColmapSink(db) as sink:
-        rep = match_collection_expanded(src, sequential_pairs(src.names(), 1), sink,
-                                        dict(progress=False, workers=1, cache_mb=64))
-    assert len(rep.reports) >= 2 and starts == [1] and closed == [True]
-    backends = [r.totals["backend"] for r in rep.reports]
-    assert backends == ["local-cluster"] * len(backends)
-    assert all("kept" in r.totals["backend_reason"] for r in rep.reports[1:])
-    assert all(r.totals["startup_s"] == 0.0 for r in rep.reports[1:])
-    assert sum(r.totals["image_loads"] for r in rep.reports) <= len(src.names())  # nothing loaded twice
-    assert _rows(db) == _rows(ref)
-
-
 def _names(db):
     con = sqlite3.connect(db)
     try:

@@ -43,62 +43,7 @@ def _start_local_cluster(n: int):
         return cluster, Client(cluster, set_as_default=False)
 
 
-class KeptCluster:
-    """A local cluster kept across the stages of one staged run (the retrieval shortlist, then each expansion round:
-    :func:`~guidedmatch.collection.expansion.match_collection_expanded`), instead of one started and closed per stage.
-
-    Started by the first stage whose own choice is a local cluster (:meth:`start`); every later stage then runs on
-    it, small ones included. Its workers keep their image caches (and the images' approximate indexes) from stage to
-    stage under one run id, so a round does not reload and re-index what the previous stage left cached, and no stage
-    waits for worker processes to start. :meth:`close` drops the caches and stops the cluster (the caller's
-    ``finally``).
-    """
-
-    def __init__(self):
-        import uuid
-
-        self.cluster = self.client = None
-        self.workers = 0
-        self.run_id = uuid.uuid4().hex[:12]
-        self.counters = (0, 0)  # (cache hits, image loads) reported by the stages so far (a stage reports its own)
-
-    @classmethod
-    @contextlib.contextmanager
-    def for_stages(cls, client=None):
-        """A kept cluster for the stages inside the block, closed at its end however it ends (None when the caller
-        gives its own ``client``: that cluster is the caller's)."""
-        kept = None if client is not None else cls()
-        try:
-            yield kept
-        finally:
-            if kept is not None:
-                kept.close()
-
-    @property
-    def started(self) -> bool:
-        return self.client is not None
-
-    def start(self, n: int) -> float:
-        """Start the cluster of ``n`` workers; its start-up time, s."""
-        t0 = time.perf_counter()
-        self.cluster, self.client = _start_local_cluster(n)
-        self.workers = n
-        return time.perf_counter() - t0
-
-    def close(self) -> None:
-        if self.client is not None:
-            with contextlib.suppress(Exception):
-                self.client.run(_forget_run, self.run_id)
-            with contextlib.suppress(Exception):
-                self.client.close()
-        if self.cluster is not None:
-            with contextlib.suppress(Exception):
-                self.cluster.close()
-        self.cluster = self.client = None
-
-
-def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, tasks_per_worker: int,
-              kept: KeptCluster | None = None) -> dict:
+def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, tasks_per_worker: int) -> dict:
     """Run the queue on a Dask cluster; at most ``tasks_per_worker`` tasks per worker in flight.
 
     Locality without placement restrictions: each anchor image gets a tiny *token* task that loads it into a
@@ -189,12 +134,8 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
         counters = client.run(_cache_counters, spec.run_id)
     except Exception:  # noqa: BLE001 - a worker restarting: the counters are only statistics
         counters = {}
+    with contextlib.suppress(Exception):
+        client.run(_forget_run, spec.run_id)
     hits = sum(c[0] for c in counters.values() if c)
     loads = sum(c[1] for c in counters.values() if c)
-    if kept is None:
-        with contextlib.suppress(Exception):
-            client.run(_forget_run, spec.run_id)
-    else:  # the caches stay for the next stage; this stage reports its own hits and loads
-        (h0, l0), kept.counters = kept.counters, (hits, loads)
-        hits, loads = max(0, hits - h0), max(0, loads - l0)
     return dict(cache_hits=hits, image_loads=loads, workers=len(seen_workers))

@@ -136,7 +136,7 @@ def _done_pairs(sink, candidates) -> set:
 
 
 def match_collection(source, pairs, sink, config: CollectionConfig | dict | None = None, *,
-                     client=None, kept=None) -> CollectionReport:
+                     client=None) -> CollectionReport:
     """Match every pair of ``pairs`` with features from ``source`` and write them into ``sink``.
 
     Args:
@@ -148,9 +148,6 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             this process writes to it.
         config: :class:`CollectionConfig` or a dict of its fields.
         client: a :class:`distributed.Client` of a running cluster to use (not closed by this call).
-        kept: a :class:`~guidedmatch.collection.dask_backend.KeptCluster` shared by the stages of a staged run:
-            started here when this run's own choice is a local cluster, and once started, used whatever the size
-            of the run (its workers' image caches stay for the next stage); not closed by this call.
 
     Returns:
         :class:`CollectionReport`. Pairs that failed after their retries are listed in ``report.failed``;
@@ -195,14 +192,8 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                 nfeat[n] = int(source.num_features(n))
     work = sum(nfeat[a] + nfeat[b] for a, b in todo)
     backend, n_workers, reason = _choose_backend(cfg, client, work) if todo else ("none", 0, "nothing to do")
-    if kept is not None and (client is not None or cfg.scheduler is not None):
-        kept = None  # a given cluster is the caller's to keep
-    if kept is not None and todo and kept.started:
-        backend, n_workers = "local-cluster", kept.workers
-        reason = f"the local cluster kept from the run's first stage ({kept.workers} workers, warm image caches)"
-    use_kept = kept is not None and backend == "local-cluster"
-    spec = _TaskSpec(kept.run_id if use_kept else uuid.uuid4().hex[:12], cfg.mode, cfg.matcher,
-                     int(cfg.cache_mb * 2**20), single_thread=backend == "local-cluster")
+    spec = _TaskSpec(uuid.uuid4().hex[:12], cfg.mode, cfg.matcher, int(cfg.cache_mb * 2**20),
+                     single_thread=backend == "local-cluster")
     if backend in ("local-cluster", "scheduler", "client"):
         try:
             pickle.dumps(source)
@@ -220,12 +211,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     try:
         if backend in ("local-cluster", "scheduler", "client"):  # before the progress bar and the log
             t0 = time.perf_counter()
-            if use_kept:
-                kept_new = not kept.started  # started by this stage: its start-up is this stage's
-                if kept_new:
-                    kept.start(n_workers)
-                use = kept.client
-            elif backend == "local-cluster":
+            if backend == "local-cluster":
                 cluster, own_client = _start_local_cluster(n_workers)
                 use = own_client
             elif backend == "scheduler":
@@ -237,7 +223,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                     raise GuidedMatchError(f"cannot connect to the dask scheduler at {cfg.scheduler}: {exc}") from None
             else:
                 use = client
-            startup_s = time.perf_counter() - t0 if not use_kept or kept_new else 0.0
+            startup_s = time.perf_counter() - t0
         log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
         if cfg.progress:
             from tqdm.auto import tqdm
@@ -254,7 +240,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
         elif backend == "none":
             facts = dict(cache_hits=0, image_loads=0, workers=0)
         else:
-            facts = _run_dask(use, source, spec, queue, writer, cfg.tasks_per_worker, kept if use_kept else None)
+            facts = _run_dask(use, source, spec, queue, writer, cfg.tasks_per_worker)
     except BaseException:
         if log is not None:
             log.close()

@@ -278,7 +278,6 @@ def match_collection_expanded(source, pairs, sink, config=None, expand: Expansio
     Returns:
         :class:`StagedReport`.
     """
-    from .dask_backend import KeptCluster
     from .engine import match_collection
 
     ecfg = config_from(ExpansionConfig, expand)
@@ -305,7 +304,7 @@ def match_collection_expanded(source, pairs, sink, config=None, expand: Expansio
 
     def run(stage: str, todo, extra: dict) -> set:
         t = time.perf_counter()
-        rep = match_collection(source, todo, sink, config, client=client, kept=kept)
+        rep = match_collection(source, todo, sink, config, client=client)
         if geometry == "colmap":
             sink.verify()  # COLMAP's verification of the pairs with matches and no geometry yet
         reports.append(rep)
@@ -317,38 +316,35 @@ def match_collection_expanded(source, pairs, sink, config=None, expand: Expansio
                            time_s=time.perf_counter() - t, **extra))
         return tried, verified
 
-    # one local cluster for every stage when the shortlist's own choice is one (dask_backend.KeptCluster): no worker
-    # start-up per round, and the workers' image caches and indexes carry over from stage to stage
-    with KeptCluster.for_stages(client) as kept:
-        tried, verified = run("shortlist", pairs, {})
-        key = _state_key(shortlist, ecfg)
-        saved_rounds = _load_state(state, key)
-        rounds_done = 0
-        capped = 0
-        stopped = "max_rounds=0" if ecfg.max_rounds == 0 else None
-        while rounds_done < ecfg.max_rounds:
-            if rounds_done < len(saved_rounds):  # replay a round saved by an earlier (interrupted) run
-                r = saved_rounds[rounds_done]
-                cand = [tuple(p) for p in r["pairs"]]
-                total, hit, support = r["candidates"], r["capped"], r.get("support_max", 0)
-            else:
-                cand, sup, total = triangle_candidates(names, tried, verified, ecfg.min_support,
-                                                       ecfg.max_pairs_per_round)
-                hit = total > len(cand)
-                support = max(sup) if sup else 0
-                if not cand:
-                    stopped = "no triangle-closing pair left"
-                    break
-                saved_rounds = saved_rounds[:rounds_done] + [dict(pairs=[list(p) for p in cand], candidates=total,
-                                                                  capped=hit, support_max=support)]
-                _save_state(state, key, saved_rounds)
-            rounds_done += 1
-            capped += bool(hit)
-            tried, verified = run(f"expansion {rounds_done}", cand, dict(candidates=total, capped=bool(hit),
-                                                                          support_max=support))
-            if stages[-1]["verified"] == 0:  # the round's pairs were all untried: none verified = nothing added
-                stopped = "a round added no verified pair"
+    tried, verified = run("shortlist", pairs, {})
+    key = _state_key(shortlist, ecfg)
+    saved_rounds = _load_state(state, key)
+    rounds_done = 0
+    capped = 0
+    stopped = "max_rounds=0" if ecfg.max_rounds == 0 else None
+    while rounds_done < ecfg.max_rounds:
+        if rounds_done < len(saved_rounds):  # replay a round saved by an earlier (interrupted) run
+            r = saved_rounds[rounds_done]
+            cand = [tuple(p) for p in r["pairs"]]
+            total, hit, support = r["candidates"], r["capped"], r.get("support_max", 0)
+        else:
+            cand, sup, total = triangle_candidates(names, tried, verified, ecfg.min_support,
+                                                   ecfg.max_pairs_per_round)
+            hit = total > len(cand)
+            support = max(sup) if sup else 0
+            if not cand:
+                stopped = "no triangle-closing pair left"
                 break
+            saved_rounds = saved_rounds[:rounds_done] + [dict(pairs=[list(p) for p in cand], candidates=total,
+                                                              capped=hit, support_max=support)]
+            _save_state(state, key, saved_rounds)
+        rounds_done += 1
+        capped += bool(hit)
+        tried, verified = run(f"expansion {rounds_done}", cand, dict(candidates=total, capped=bool(hit),
+                                                                      support_max=support))
+        if stages[-1]["verified"] == 0:  # the round's pairs were all untried: none verified = nothing added
+            stopped = "a round added no verified pair"
+            break
     if stopped is None:
         stopped = f"max_rounds={ecfg.max_rounds} reached"
     expansion = dict(rounds=rounds_done, stopped=stopped, capped_rounds=capped, max_rounds=ecfg.max_rounds,
