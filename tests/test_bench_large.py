@@ -100,6 +100,7 @@ def test_bench_sfm_set_large_runs_bench_large_with_the_pipelines_and_sfm(tmp_pat
     assert argv[argv.index("--out") + 1] == str(tmp_path / "out" / "large") and "--sfm" in argv
     assert argv[argv.index("--data") + 1] == str(tmp_path) and argv[argv.index("--work") + 1] == str(tmp_path / "w")
     assert set(argv[argv.index("--map") + 1].split(",")) == {"colmap_exhaustive", "colmap_vocabtree"}
+    assert set(argv[argv.index("--sfm-mappers") + 1].split(",")) == {"incremental", "global"}
     assert {"colmap_exhaustive", "colmap_vocabtree", "ours_retrieval_expand"} <= set(argv[argv.index("--methods") + 1].split(","))
 
 

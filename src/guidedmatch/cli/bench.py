@@ -79,7 +79,8 @@ def cmd_bench(args) -> int:
         return int(bench_large.main([*(["--data", args.data] if args.data else []),
                                      *(["--work", args.work] if args.work else []),
                                      "--out", str(Path(args.out) / "large"), "--methods", LARGE_SFM_METHODS,
-                                     "--map", "colmap_exhaustive,colmap_vocabtree", "--sfm"]) or 0)
+                                     "--map", "colmap_exhaustive,colmap_vocabtree", "--sfm",
+                                     "--sfm-mappers", "incremental,global"]) or 0)
     if args.which == "sfm":
         from ..evaluation import bench_sfm
 
@@ -139,7 +140,7 @@ def add_commands(sub, parents) -> None:
                    "most 1000 inliers per pair to the mapper, as guidedmatch sfm does)")
     b.add_argument("--set", default="p8", choices=("p8", "large"),
                    help="sfm: p8 = Herz-Jesus-P8 (or --scene), median of --repeats alternating runs; large = the "
-                   "220-image collection (data/collections + Herz-Jesus-P8 + the Unsplash photos): guidedmatch sfm vs "
+                   "220-image collection (data/collections + Herz-Jesus-P8 + the Unsplash photos): guidedmatch sfm (each mapper) vs "
                    "the pycolmap pipeline with exhaustive and with vocabulary-tree matching, one run each, per-scene "
                    "registration, models and poses (bench large --sfm; cached in --work, default ~/.cache/guidedmatch/"
                    "large; COLMAP exhaustive takes ~16 min there)")

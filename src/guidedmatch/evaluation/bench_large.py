@@ -314,7 +314,8 @@ def figure(res: dict, path: Path) -> None:
 
 
 def run(data: Path, out: Path, work: Path, k: int, methods, rerun=(), vt_words: int = 4096,
-        vt_sample: int = 200_000, note: str = "", map_methods=(), sfm: bool = False) -> dict:
+        vt_sample: int = 200_000, note: str = "", map_methods=(), sfm: bool = False,
+        sfm_mappers=("incremental",)) -> dict:
     from .meta import run_metadata, write_json
 
     work.mkdir(parents=True, exist_ok=True)
@@ -332,7 +333,7 @@ def run(data: Path, out: Path, work: Path, k: int, methods, rerun=(), vt_words: 
     reference = evaluate(rows, work, scenes) if have_ref else {}
     from .large_models import models_section
 
-    models = models_section(data, work, names, scenes, rows, map_methods, sfm, rerun)
+    models = models_section(data, work, names, scenes, rows, map_methods, sfm, rerun, sfm_mappers)
     n = len(names)
     across = sum(scenes[names[i]] != scenes[names[j]] for i in range(n) for j in range(i + 1, n))
     res = dict(meta=run_metadata(), note=note, images=n, pairs=n * (n - 1) // 2, across_pairs=across, k=k,
@@ -487,6 +488,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", default="", metavar="METHODS",
                    help="methods whose database COLMAP's mapper maps (comma-separated; 'all' = every method run)")
     p.add_argument("--sfm", action="store_true", help="also run guidedmatch sfm from an empty project (photos -> model)")
+    p.add_argument("--sfm-mappers", default="incremental", help="--sfm: one run per mapper (comma-separated: "
+                   "incremental,global)")
     p.add_argument("--snapshot", action="store_true", help="only evaluate where the (possibly unfinished) runs stand")
 
 
@@ -511,7 +514,8 @@ def main(argv=None) -> int:
         p.error(f"unknown methods {bad}; choose from {', '.join(METHODS)}")
     res = run(Path(a.data), Path(a.out), Path(a.work), a.k, methods, rerun=set(a.rerun.split(",")),
               vt_words=a.vt_words, vt_sample=a.vt_sample, note=a.note,
-              map_methods=methods if a.map == "all" else [m for m in a.map.split(",") if m], sfm=a.sfm)
+              map_methods=methods if a.map == "all" else [m for m in a.map.split(",") if m], sfm=a.sfm,
+              sfm_mappers=[m for m in a.sfm_mappers.split(",") if m])
     if res["reference"]:
         from .large_models import models_markdown
 

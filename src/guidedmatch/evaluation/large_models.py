@@ -101,33 +101,41 @@ def image_links(data: Path, names: list[str], folder: Path) -> Path:
     return folder
 
 
-def run_sfm(data: Path, work: Path, names: list[str], rerun: bool = False, extra: tuple = ()) -> dict:
-    """``guidedmatch sfm`` from an empty project on the collection (module doc); cached."""
-    out, res = work / "sfm_ours", work / "sfm_ours.json"
+def sfm_tag(mapper: str) -> str:
+    """The cache name of a ``guidedmatch sfm`` run with ``mapper`` (incremental keeps the first rounds' name)."""
+    return "sfm_ours" if mapper == "incremental" else f"sfm_ours_{mapper}"
+
+
+def run_sfm(data: Path, work: Path, names: list[str], rerun: bool = False, extra: tuple = (),
+            mapper: str = "incremental") -> dict:
+    """``guidedmatch sfm --mapper MAPPER`` from an empty project on the collection (module doc); cached."""
+    tag = sfm_tag(mapper)
+    out, res = work / tag, work / f"{tag}.json"
     if res.exists() and (out / "report.json").exists() and not rerun:
         return dict(json.loads(res.read_text()), reused=True)
     if out.exists():
         shutil.rmtree(out)
     images = image_links(data, names, work / "images")
-    print("[bench large] guidedmatch sfm ...", file=sys.stderr, flush=True)
+    print(f"[bench large] guidedmatch sfm --mapper {mapper} ...", file=sys.stderr, flush=True)
     load0 = os.getloadavg()
+    extra = ("--mapper", mapper, *extra)
     r = _timed([sys.executable, "-m", "guidedmatch.cli", "sfm", str(images), str(out), "--quiet", *extra])
     report = json.loads((out / "report.json").read_text())
-    row = dict(method="sfm_ours", wall_s=r["wall_s"], cpu_s=r["cpu_s"], load_before=load0,
+    row = dict(method=tag, wall_s=r["wall_s"], cpu_s=r["cpu_s"], load_before=load0,
                load_after=os.getloadavg(), command=f"guidedmatch sfm IMAGES OUT --quiet {' '.join(extra)}".strip(),
                report=report)
     res.write_text(json.dumps(row))
     return dict(row, reused=False)
 
 
-def sfm_models(row: dict, work: Path) -> tuple[list[list[str]], Path]:
+def sfm_models(row: dict, work: Path, mapper: str = "incremental") -> tuple[list[list[str]], Path]:
     """The models' image lists (largest first) and the sparse folder of a :func:`run_sfm` row."""
     models = [m["registered_names"] for m in row["report"]["stages"]["mapping"].get("models", [])]
-    return models, work / "sfm_ours" / "sparse"
+    return models, work / sfm_tag(mapper) / "sparse"
 
 
 def models_section(data: Path, work: Path, names: list[str], scenes: dict, rows: dict, map_methods, sfm: bool,
-                   rerun=()) -> dict:
+                   rerun=(), sfm_mappers=("incremental",)) -> dict:
     """Map every method of ``map_methods`` that has a database, judge the models, and run ``guidedmatch sfm`` when
     ``sfm``; returns ``{"maps": {method: map row + judged models}, "pipelines": {...}}``."""
     maps = {}
@@ -144,11 +152,11 @@ def models_section(data: Path, work: Path, names: list[str], scenes: dict, rows:
             parts = dict(extraction=ext["wall_s"], matching=rows[m]["wall_s"], mapping=maps[m]["wall_s"])
             pipelines[f"pycolmap ({m.split('_')[1]})"] = dict(parts, total=sum(parts.values()),
                                                               judged=maps[m]["judged"])
-    if sfm:
-        r = run_sfm(data, work, names, rerun="sfm_ours" in rerun)
-        models, sparse = sfm_models(r, work)
+    for mapper in sfm_mappers if sfm else ():
+        r = run_sfm(data, work, names, rerun=sfm_tag(mapper) in rerun, mapper=mapper)
+        models, sparse = sfm_models(r, work, mapper)
         st = r["report"]["stages"]
-        pipelines["guidedmatch sfm"] = dict(
+        pipelines["guidedmatch sfm" + ("" if mapper == "incremental" else f" ({mapper} mapper)")] = dict(
             extraction=st["extraction"]["time_s"], matching=st["matching"]["time_s"], mapping=st["mapping"]["time_s"],
             total=r["wall_s"], peak_rss_mb=r["report"]["peak_rss_mb"],
             peak_rss_by_stage={k: v.get("peak_rss_mb") for k, v in st.items()},
@@ -180,12 +188,14 @@ def models_markdown(sec: dict) -> str:
                   "pycolmap rows: the stages above in fresh processes, summed (COLMAP SIFT extraction + matching + "
                   "mapper); guidedmatch sfm: one process from an empty project (its own OpenCV SIFT extraction, "
                   "`--pairs auto`, the mapper).", "",
-                  "| pipeline | total s | x pycolmap exhaustive | extraction | matching | mapping | peak memory MB | "
-                  "models | mixing | registered P25+P8 / buddha / fox / lund | pose P8 / P25 / buddha / fox |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| pipeline | total s | x pycolmap exhaustive | x pycolmap vocabtree | extraction | matching | mapping | "
+                  "peak memory MB | models | mixing | registered P25+P8 / buddha / fox / lund | pose P8 / P25 / buddha / "
+                  "fox |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         base = sec["pipelines"].get("pycolmap (exhaustive)", {}).get("total")
+        vt = sec["pipelines"].get("pycolmap (vocabtree)", {}).get("total")
         for name, p in sec["pipelines"].items():
             x = f"{p['total'] / base:.3f}" if base else ""
-            lines.append(f"| {name} | {p['total']:.0f} | {x} | {p['extraction']:.0f} | {p['matching']:.0f} | "
+            xv = f"{p['total'] / vt:.3f}" if vt else ""
+            lines.append(f"| {name} | {p['total']:.0f} | {x} | {xv} | {p['extraction']:.0f} | {p['matching']:.0f} | "
                          f"{p['mapping']:.0f} | {p.get('peak_rss_mb', '')} | {_scene_cells(p['judged'])} |")
     return "\n".join(lines) + "\n"
