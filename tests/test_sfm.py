@@ -194,7 +194,8 @@ def test_sfm_end_to_end_and_resume(rendered, tmp_path):
         assert st["time_s"] >= 0 and st["peak_rss_mb"]["self"] > 10
     assert rep["peak_rss_mb"] >= max(st["peak_rss_mb"]["self"] for st in rep["stages"].values())
     assert rep["mapper"] == "incremental" and "peak memory" in rep["summary"] and "5/5 images" in rep["summary"]
-    assert "peak memory" in (out / "report.md").read_text()
+    assert rep["mapper_rule"] == "auto: 5 images <= 100: incremental"  # the default mapper="auto" on a small folder
+    assert "peak memory" in (out / "report.md").read_text() and "(auto: 5 images" in (out / "report.md").read_text()
 
     # rerun: nothing extracted or matched again, the model of the unchanged database reused
     proc = run_cli(*args)

@@ -36,9 +36,9 @@ def add_extraction_options(p: argparse.ArgumentParser) -> None:
 
 def add_mapping_options(p: argparse.ArgumentParser) -> None:
     """The mapper's options (``map`` and ``sfm``)."""
-    p.add_argument("--mapper", default="incremental", choices=("incremental", "global"),
-                   help="incremental (pycolmap.incremental_mapping, default) or global (pycolmap.global_mapping, "
-                        "COLMAP's global SfM)")
+    p.add_argument("--mapper", default="auto", choices=("auto", "incremental", "global"),
+                   help="incremental (pycolmap.incremental_mapping), global (pycolmap.global_mapping, COLMAP's "
+                        "global SfM) or auto (default: global above 100 images, else incremental; docs/sfm.md)")
     p.add_argument("--seed", type=int, default=0, help="mapper random seed (default 0)")
 
 
@@ -99,7 +99,8 @@ def cmd_map(args) -> int:
     rec = run_map(args.database, args.image_dir, out, _conf(args), colmap_log=args.colmap_log,
                   fixed_intrinsics=args.fixed_intrinsics)
     how = "reused (same database and settings)" if rec.get("reused") else f"{rec['time_s']:.1f} s"
-    print(f"mapping    : {rec['mapper']} mapper, {how}, {len(rec['models'])} model(s), {_peak(rec)}")
+    rule = f" ({rec['mapper_rule']})" if rec.get("mapper_rule", "").startswith("auto") else ""
+    print(f"mapping    : {rec['mapper']} mapper{rule}, {how}, {len(rec['models'])} model(s), {_peak(rec)}")
     _models_lines(rec, out)
     if not rec["models"] or rec["models"][0]["registered"] < 2:
         print("guidedmatch: no reconstruction: the mapper could not register 2 images (too few verified pairs)",
@@ -167,7 +168,7 @@ def add_commands(sub, parents) -> None:
                        description="Structure from motion with guidedmatch as the matcher -- the stages of guidedmatch "
                        "extract, colmap and map in one process: every image decoded completely and its features "
                        "extracted (OpenCV SIFT in COLMAP's conventions by default) into OUT_DIR/database.db, collection matching, pycolmap's "
-                       "incremental (default) or global mapper into OUT_DIR/sparse/0 (sparse/1, ... when the images "
+                       "mapper (--mapper auto: incremental up to 100 images, global beyond) into OUT_DIR/sparse/0 (sparse/1, ... when the images "
                        "form several models), report.json / report.md / reconstruction.png with the time and peak "
                        "memory of each stage. A damaged image is skipped and named (--bad-images refuse: exit 2). "
                        "Resumable: a rerun reuses extracted features, matched pairs and an up-to-date model.",

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..collection.sink_base import open_pycolmap_database
 from ..errors import DatabaseError, OutputError
-from .config import COLMAP_MAX_IMAGE_SIZE, VERIFIED_CONFIGS, SfmConfig, SfmPaths, parse_camera, say
+from .config import COLMAP_MAX_IMAGE_SIZE, VERIFIED_CONFIGS, SfmConfig, SfmPaths, parse_camera, resolve_mapper, say
 
 __all__ = ["check_output", "extract_main", "match_main", "match_into_database", "map_main", "run_mapping", "reconstruction_stats",
            "database_pair_stats", "verified_inliers", "extract_colmap_sift", "database_summary", "peak_memory", "make_folder"]
@@ -507,7 +507,8 @@ def map_main(conf: SfmConfig, paths: SfmPaths, fixed_intrinsics: bool | None = N
     and the previous model is replaced when it is done."""
     fixed = conf.camera is not None if fixed_intrinsics is None else bool(fixed_intrinsics)
     key = {"database": database_summary(paths.database), "settings": dict(conf.mapping_settings(), fixed=fixed)}
-    record: dict = {}
+    mapper, rule = resolve_mapper(conf.mapper, key["database"]["images"])
+    record: dict = {"mapper_rule": rule}
     with peak_memory(record):
         try:
             old = json.loads(paths.mapping_record.read_text()) if paths.mapping_record.is_file() else None
@@ -515,12 +516,12 @@ def map_main(conf: SfmConfig, paths: SfmPaths, fixed_intrinsics: bool | None = N
             old = None
         if old and {k: old.get(k) for k in key} == key and "result" in old and all(
                 Path(m["path"]).is_dir() for m in old["result"]["models"]):
-            say(conf, f"[3/3] mapping ({conf.mapper}): the model in {paths.sparse} is up to date (same database and "
+            say(conf, f"[3/3] mapping ({mapper}): the model in {paths.sparse} is up to date (same database and "
                       "settings); reused")
             result = dict(old["result"], reused=True, time_s=0.0)
         else:
-            say(conf, f"[3/3] mapping (pycolmap.{conf.mapper}_mapping)")
-            result = dict(run_mapping(paths.database, paths.image_dir, paths.sparse, mapper=conf.mapper,
+            say(conf, f"[3/3] mapping (pycolmap.{mapper}_mapping; {rule})")
+            result = dict(run_mapping(paths.database, paths.image_dir, paths.sparse, mapper=mapper,
                                       num_threads=conf.num_threads, seed=conf.seed,
                                       fixed_intrinsics=fixed, record=key), reused=False)
     return dict(result, **record)
