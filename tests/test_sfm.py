@@ -367,6 +367,24 @@ def test_sfm_global_mapper(rendered, tmp_path):
     assert max(r["error_deg"] for r in ev.per_pair) <= 3.0, ev.summary()
 
 
+def test_auto_mapper_switches_to_global_above_the_threshold(rendered, tmp_path, monkeypatch):
+    """``mapper="auto"`` (the default) maps with the global mapper when the database holds more images than
+    AUTO_GLOBAL_ABOVE (lowered here to 3 for the 5-view scene); the report says which mapper ran and why, and a
+    rerun with the same settings reuses that model."""
+    from guidedmatch.sfm import config as sfm_config
+    from guidedmatch.sfm import run_sfm
+
+    monkeypatch.setattr(sfm_config, "AUTO_GLOBAL_ABOVE", 3)
+    scene, folder = rendered
+    conf = {"detector": "ours:sift", "camera": _known_camera(scene), "workers": 0, "num_threads": 2,
+            "progress": False}
+    rep = run_sfm(folder, tmp_path / "proj", conf)
+    assert rep["mapper"] == "global" and rep["mapper_rule"] == "auto: 5 images > 3: global"
+    assert rep["registered"] == 5 and "global mapper" in rep["summary"]
+    again = run_sfm(folder, tmp_path / "proj", conf)
+    assert again["stages"]["mapping"]["reused"] and again["mapper"] == "global"
+
+
 @pytest.mark.parametrize("pairs", ["auto", "retrieval:2"])
 def test_two_unrelated_scenes_give_two_models(tmp_path, pairs):
     """Two rendered scenes in one folder: two models, each holding the views of one scene only; both reported --
