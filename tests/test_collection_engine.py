@@ -577,9 +577,11 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
     log = tmp_path / "run1.jsonl"
     env = {**os.environ, "PYTHONPATH": SRC}
     env.pop("GM_TEST_IN_WORKER", None)
-    proc = subprocess.Popen([sys.executable, "-m", "guidedmatch.cli", "colmap", str(db), "--workers", "2",
-                             "--log", str(log), "--no-progress"], env=env, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    err = tmp_path / "run1.stderr"
+    with open(err, "wb") as err_file:  # kept for the message below: a run that ends by itself says why
+        proc = subprocess.Popen([sys.executable, "-m", "guidedmatch.cli", "colmap", str(db), "--workers", "2",
+                                 "--log", str(log), "--no-progress"], env=env, start_new_session=True,
+                                stdout=subprocess.DEVNULL, stderr=err_file)
     try:
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline and proc.poll() is None:
@@ -589,7 +591,8 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
         os.killpg(proc.pid, signal.SIGKILL)  # the command and its worker processes, at once
     finally:
         proc.wait(timeout=30)
-    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    assert proc.returncode == -signal.SIGKILL, (f"the run ended by itself (exit {proc.returncode}) before it could be "
+                                                f"killed; its stderr: {err.read_text(errors='replace')[-2000:]}")
     stored = db_rows(db)  # a valid database: every stored pair has its matches and its geometry
     assert 2 <= len(stored) < n_pairs and all(g is not None for _, g in stored.values())
 
