@@ -367,6 +367,19 @@ def test_sfm_global_mapper(rendered, tmp_path):
     assert max(r["error_deg"] for r in ev.per_pair) <= 3.0, ev.summary()
 
 
+def test_cli_mapper_help_states_the_auto_threshold():
+    """The CLI writes the auto rule's threshold out (it does not import guidedmatch.sfm to build its parser): the
+    text must say AUTO_GLOBAL_ABOVE."""
+    from guidedmatch.cli import build_parser
+    from guidedmatch.sfm.config import AUTO_GLOBAL_ABOVE
+
+    sub = next(a for a in build_parser()._actions if hasattr(a, "choices") and isinstance(a.choices, dict))
+    for cmd in ("sfm", "map"):
+        mapper = next(a for a in sub.choices[cmd]._actions if "--mapper" in a.option_strings)
+        assert f"global above {AUTO_GLOBAL_ABOVE} images" in mapper.help
+    assert f"incremental up to {AUTO_GLOBAL_ABOVE} images" in sub.choices["sfm"].description
+
+
 def test_auto_mapper_switches_to_global_above_the_threshold(rendered, tmp_path, monkeypatch):
     """``mapper="auto"`` (the default) maps with the global mapper when the database holds more images than
     AUTO_GLOBAL_ABOVE (lowered here to 3 for the 5-view scene); the report says which mapper ran and why, and a

@@ -175,6 +175,22 @@ def exact_top_among(qrow: np.ndarray, t: np.ndarray, js: np.ndarray, m: int = 2)
     return out_i, out_d
 
 
+def exact_top_among_rows(q: np.ndarray, t: np.ndarray, among: np.ndarray, m: int = 2):
+    """:func:`exact_top_among` for every query row at once: the exact top ``m`` of row ``i`` of ``q (R, D)`` among the
+    targets ``t[j]`` with ``among[i, j]`` (a boolean ``(R, len(t))`` mask): ``(idx (R, m), sq (R, m) float64)``, equal
+    distances by the lower index, ``-1`` / ``inf`` past a row's count. One padded candidate matrix through
+    :func:`sqdist_rows`: the same sums, so the same values as the row-by-row call."""
+    count = among.sum(axis=1)
+    width = max(int(count.max()) if len(count) else 0, m)
+    cand = np.argsort(~among, axis=1, kind="stable")[:, :width]  # each row's targets first, in index order
+    cand[np.arange(cand.shape[1])[None, :] >= count[:, None]] = -1  # padding: distance inf
+    dd = sqdist_rows(np.ascontiguousarray(q), t, np.ascontiguousarray(cand, np.int64))
+    o = np.argsort(dd, axis=1, kind="stable")[:, :m]  # stable: equal distances keep the lower index
+    r = np.arange(len(q))[:, None]
+    sq = dd[r, o]
+    return np.where(np.isfinite(sq), cand[r, o], -1), sq
+
+
 def top_of_exact(cand: np.ndarray, dist: np.ndarray, m: int = 2):
     """Top ``m`` of candidates whose distances are exact already (integers below 2^24 in float32: byte-valued
     descriptors through a GEMM or faiss's 8-bit codes): ``(idx (Q, m), sq (Q, m) float64)`` by distance, then the

@@ -271,17 +271,9 @@ class PreparedImage:
 def _exact_cells(q: np.ndarray, cent: np.ndarray, approx: np.ndarray, delta: np.ndarray, nprobe: int):
     """Exact nearest ``nprobe`` centroids of each query row ``q (R, D)`` among the centroids its approximate
     distances ``approx (R, C)`` cannot rule out (within ``2 delta`` of its ``nprobe``-th): ``(idx (R, nprobe),
-    sq (R, nprobe) float64)``, equal distances by the lower index (:func:`guidedmatch.exact.exact_top_among` per row,
-    in one pass: one padded candidate matrix through :func:`guidedmatch.exact.sqdist_rows`)."""
+    sq (R, nprobe) float64)``, equal distances by the lower index (:func:`guidedmatch.exact.exact_top_among_rows`)."""
     near = approx <= (np.sort(approx, axis=1)[:, nprobe - 1] + 2.0 * delta)[:, None]
-    count = near.sum(axis=1)
-    cand = np.argsort(~near, axis=1, kind="stable")[:, :max(int(count.max()), nprobe)]  # each row's near, ascending
-    cand[np.arange(cand.shape[1])[None, :] >= count[:, None]] = -1                       # padding: distance inf
-    dd = exact.sqdist_rows(np.ascontiguousarray(q), cent, np.ascontiguousarray(cand, np.int64))
-    o = np.argsort(dd, axis=1, kind="stable")[:, :nprobe]  # stable: equal distances keep the lower index
-    r = np.arange(len(q))[:, None]
-    sq = dd[r, o]
-    return np.where(np.isfinite(sq), cand[r, o], -1), sq
+    return exact.exact_top_among_rows(q, cent, near, nprobe)
 
 
 class _faiss_threads:

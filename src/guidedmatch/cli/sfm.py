@@ -39,6 +39,8 @@ def add_mapping_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mapper", default="auto", choices=("auto", "incremental", "global"),
                    help="incremental (pycolmap.incremental_mapping), global (pycolmap.global_mapping, COLMAP's "
                         "global SfM) or auto (default: global above 100 images, else incremental; docs/sfm.md)")
+    # 100 = guidedmatch.sfm.AUTO_GLOBAL_ABOVE, written out: importing guidedmatch.sfm here would add ~0.16 s to the
+    # start-up of every command (tests/test_sfm.py checks the two agree)
     p.add_argument("--seed", type=int, default=0, help="mapper random seed (default 0)")
 
 
@@ -99,8 +101,9 @@ def cmd_map(args) -> int:
     rec = run_map(args.database, args.image_dir, out, _conf(args), colmap_log=args.colmap_log,
                   fixed_intrinsics=args.fixed_intrinsics)
     how = "reused (same database and settings)" if rec.get("reused") else f"{rec['time_s']:.1f} s"
-    rule = f" ({rec['mapper_rule']})" if rec.get("mapper_rule", "").startswith("auto") else ""
-    print(f"mapping    : {rec['mapper']} mapper{rule}, {how}, {len(rec['models'])} model(s), {_peak(rec)}")
+    from ..sfm.config import mapper_label
+
+    print(f"mapping    : {mapper_label(rec)}, {how}, {len(rec['models'])} model(s), {_peak(rec)}")
     _models_lines(rec, out)
     if not rec["models"] or rec["models"][0]["registered"] < 2:
         print("guidedmatch: no reconstruction: the mapper could not register 2 images (too few verified pairs)",

@@ -12,7 +12,8 @@ from ..errors import ConfigError
 from ..validation import check_bool, check_choice, check_number, config_from
 
 __all__ = ["SfmConfig", "SfmPaths", "parse_camera", "IMAGE_EXTENSIONS", "COLMAP_MAX_IMAGE_SIZE", "OUR_DETECTORS",
-           "CAMERA_MODELS", "MAPPERS", "AUTO_GLOBAL_ABOVE", "resolve_mapper", "MIN_MAPPER_INLIERS", "VERIFIED_CONFIGS"]
+           "CAMERA_MODELS", "MAPPERS", "AUTO_GLOBAL_ABOVE", "resolve_mapper",
+           "mapper_label", "MIN_MAPPER_INLIERS", "VERIFIED_CONFIGS"]
 
 #: Camera models accepted by ``camera=`` and their parameter counts (COLMAP's names and parameter order).
 CAMERA_MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
@@ -42,6 +43,21 @@ def resolve_mapper(mapper: str, num_images: int) -> tuple[str, str]:
     if num_images > AUTO_GLOBAL_ABOVE:
         return "global", f"auto: {num_images} images > {AUTO_GLOBAL_ABOVE}: global"
     return "incremental", f"auto: {num_images} images <= {AUTO_GLOBAL_ABOVE}: incremental"
+
+
+def mapper_label(mapping: dict) -> str:
+    """``"global mapper (auto: 220 images > 100: global)"`` -- the mapper of a mapping record, with the auto rule
+    that picked it (a mapper given by name: just its name).
+
+    >>> mapper_label({"mapper": "global", "mapper_rule": "auto: 220 images > 100: global"})
+    'global mapper (auto: 220 images > 100: global)'
+    >>> mapper_label({"mapper": "incremental", "mapper_rule": "mapper=incremental"}), mapper_label({})
+    ('incremental mapper', 'incremental mapper')
+    """
+    rule = str(mapping.get("mapper_rule") or "")
+    return f"{mapping.get('mapper', 'incremental')} mapper" + (f" ({rule})" if rule.startswith("auto") else "")
+
+
 def parse_camera(spec: str | None) -> tuple[str, list[float]] | None:
     """``"PINHOLE:fx,fy,cx,cy"`` -> ``("PINHOLE", [fx, fy, cx, cy])`` (COLMAP model name and parameter order).
 

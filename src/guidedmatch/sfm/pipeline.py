@@ -113,8 +113,8 @@ def _main_locked(conf: SfmConfig, paths: SfmPaths, command: str, names: list[str
               "stages": stages, "total_time_s": time.perf_counter() - t_start,
               "peak_rss_mb": max(max(s["peak_rss_mb"]["self"], s["peak_rss_mb"]["children"] or 0)
                                  for s in stages.values()),
-              "mapper": mapping["mapper"], "mapper_rule": mapping.get("mapper_rule"), "models": [{k: m[k] for k in ("path", "registered", "points3D",
-                                                                          "registered_names")} for m in models],
+              "mapper": mapping["mapper"], "mapper_rule": mapping.get("mapper_rule"),
+              "models": [{k: m[k] for k in ("path", "registered", "points3D", "registered_names")} for m in models],
               "registered": best["registered"] if best else 0, "points3D": best["points3D"] if best else 0,
               "unregistered": sorted(set(names) - in_models),
               "pairs": side["pairs"] if "pairs" in side else database_pair_stats(paths.database),

@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from .config import mapper_label
+
 __all__ = ["plot_reconstruction", "report_markdown"]
 
 
@@ -100,8 +102,7 @@ def report_markdown(report: dict) -> str:
                     f"this run: {ic['inliers_before']:,} -> {ic['inliers_after']:,})" if (ic := ma.get("inlier_cap")) else "")
                  + " |")
     mp = st["mapping"]
-    rule = f" ({mp['mapper_rule']})" if str(mp.get("mapper_rule", "")).startswith("auto") else ""
-    lines.append(f"| mapping | {_fmt_s(mp['time_s'])} | {_mem(mp)} | {mp.get('mapper', 'incremental')} mapper{rule}, "
+    lines.append(f"| mapping | {_fmt_s(mp['time_s'])} | {_mem(mp)} | {mapper_label(mp)}, "
                  f"{len(mp['models'])} model(s)" + (", reused (same database and settings)" if mp.get("reused") else "")
                  + " |")
     lines.append(f"| total | {_fmt_s(report['total_time_s'])} | {report.get('peak_rss_mb', '')} | |")
