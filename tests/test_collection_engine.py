@@ -579,8 +579,10 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
     env.pop("GM_TEST_IN_WORKER", None)
     err = tmp_path / "run1.stderr"
     with open(err, "wb") as err_file:  # kept for the message below: a run that ends by itself says why
+        # --no-second-look: the reference below is the engine's run alone (the second look's own kill and rerun
+        # are tested in test_collection_second_look.py)
         proc = subprocess.Popen([sys.executable, "-m", "guidedmatch.cli", "colmap", str(db), "--workers", "2",
-                                 "--log", str(log), "--no-progress"], env=env, start_new_session=True,
+                                 "--log", str(log), "--no-progress", "--no-second-look"], env=env, start_new_session=True,
                                 stdout=subprocess.DEVNULL, stderr=err_file)
     try:
         deadline = time.monotonic() + 180
@@ -596,7 +598,8 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
     stored = db_rows(db)  # a valid database: every stored pair has its matches and its geometry
     assert 2 <= len(stored) < n_pairs and all(g is not None for _, g in stored.values())
 
-    r2 = run_cli("colmap", db, "--log", tmp_path / "run2.jsonl", "--timeline", tmp_path / "run2.png")  # auto:
+    r2 = run_cli("colmap", db, "--log", tmp_path / "run2.jsonl", "--timeline", tmp_path / "run2.png",  # auto:
+                 "--no-second-look")
     assert r2.returncode == 0, r2.stderr                                  # in-process for this small rest
     assert f"{len(stored)} skipped" in r2.stdout
     assert f"timeline   : {tmp_path / 'run2.png'}" in r2.stdout and (tmp_path / "run2.png").stat().st_size > 0

@@ -311,7 +311,7 @@ def consistent_frames(angles1, angles2, tolerance_deg: float = 20.0) -> np.ndarr
     return mask
 
 
-def consistent_similarity(angles1, angles2, scales1, scales2, reference, max_deg: float = 30.0,
+def consistent_similarity(angles1, angles2, scales1, scales2, reference, max_deg: float | None = 30.0,
                           max_octaves: float = 1.0) -> np.ndarray:
     """Correspondences whose local frame changed like the pair's: rotation within ``max_deg`` of the circular mean
     of ``angles2 - angles1`` over the ``reference`` correspondences (e.g. a verified model's inliers), and
@@ -319,19 +319,21 @@ def consistent_similarity(angles1, angles2, scales1, scales2, reference, max_deg
     correspondence agrees with its neighbours' similarity; a repeated structure's twin in the epipolar band of F
     satisfies F but, seen from elsewhere, usually not the frame). ``(M,) bool``; a correspondence without an
     orientation (negative angle) or a scale (<= 0) is judged on what it has. All True when ``reference`` selects
-    nothing usable.
+    nothing usable. ``max_deg=None``: the rotation is not checked (the scale only).
 
     >>> a1 = np.array([10.0, 20.0, 30.0, 40.0, 50.0])
     >>> s1 = np.ones(5)
     >>> consistent_similarity(a1, a1 + [5, 0, -5, 90, 2], s1, s1 * [2, 2, 2, 2, 16], np.ones(5, bool)).tolist()
     [True, True, True, False, False]
+    >>> consistent_similarity(a1, a1 + [5, 0, -5, 90, 2], s1, s1 * [2, 2, 2, 2, 16], np.ones(5, bool), None).tolist()
+    [True, True, True, True, False]
     """
     a1, a2 = (np.asarray(a, np.float64).reshape(-1) for a in (angles1, angles2))
     s1, s2 = (np.asarray(s, np.float64).reshape(-1) for s in (scales1, scales2))
     ref = np.asarray(reference, bool).reshape(-1)
     keep = np.ones(len(a1), bool)
     has_a = (a1 >= 0) & (a2 >= 0) & np.isfinite(a1) & np.isfinite(a2)
-    if (ref & has_a).any():
+    if max_deg is not None and (ref & has_a).any():
         d = np.deg2rad(a2 - a1)
         mean = np.angle(np.exp(1j * d[ref & has_a]).mean())
         off = np.abs(np.angle(np.exp(1j * (d - mean))))

@@ -89,6 +89,7 @@ def add_commands(sub, parents) -> None:
                         "below 100 COLMAP's mapper cannot pick an initial pair)")
     add_matching_options(c, MODES)
     add_expansion_options(c)
+    add_second_look_option(c)
     c.set_defaults(func=cmd_colmap)
 
     h = sub.add_parser("hloc", parents=parents, help="match the pairs of an hloc features.h5 into an hloc matches.h5",
@@ -176,6 +177,14 @@ def add_expansion_options(p: argparse.ArgumentParser) -> None:
                    help="at most N expansion rounds (default 10; 0 = none)")
 
 
+def add_second_look_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=True,
+                   help="after matching, match again with a 5x longer unguided start the weak verified pairs (< 64 "
+                        "inliers) and the rejected pairs that verified neighbours tie together by >= 16 chained "
+                        "matches -- the wide-baseline pairs an exhaustive matcher verifies (default: on; --geometry "
+                        "ours; docs/collections.md)")
+
+
 def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict | None:
     """ExpansionConfig fields (dict) when the verified expansion runs, else None: on by default when the pair spec
     has a retrieval part."""
@@ -199,7 +208,12 @@ def cmd_colmap(args) -> int:
     expand = expansion_wanted(args.pairs, args.expand, args.expand_rounds)
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
-                               max_inliers_per_pair=args.max_inliers_per_pair, expand=expand)
+                               max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
+                               second_look={} if args.second_look else None)
+    if (look := done["second_look"]) is not None:
+        print(f"second look: {look['looked']} weak or rejected pairs matched again with a longer start: "
+              f"{look['verified']} newly verified, {look['inliers_gained']:+,} inliers ({look['time_s']:.2f} s, "
+              f"{len(look['rounds'])} round(s); stopped: {look['stopped']})")
     if done["verified"] is not None:
         print(f"verified   : {done['verified']} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
     if (cap := done["inlier_cap"]) is not None:

@@ -56,7 +56,7 @@ def _conf(args, **extra):
 
     names = ("detector", "max_features", "max_image_size", "peak_threshold", "camera_model", "camera",
              "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "workers",
-             "scheduler", "mapper", "seed")
+             "scheduler", "mapper", "seed", "second_look")
     kw = {k: getattr(args, k) for k in names if hasattr(args, k)}
     if getattr(args, "config", None):
         kw["matcher"] = parse_kv(args.config, "--config") or None
@@ -196,6 +196,9 @@ def add_commands(sub, parents) -> None:
                    "per pair handed to the mapper, spread over the image, best first (default 1000; 0 = all): the "
                    "mapper's time follows its observations, and on Herz-Jesus-P8 1000 gave poses at least as good as "
                    "all of them (docs/collections.md)")
+    s.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=True,
+                   help="match again, with a longer unguided start, the weak pairs and the rejected pairs that "
+                        "verified neighbours tie together by chained matches (default: on; guidedmatch colmap --help)")
     s.add_argument("--workers", type=int, default=None, help="matching worker processes (default: auto; 0 = in this process)")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS", help="match on a running Dask cluster")
     add_mapping_options(s)

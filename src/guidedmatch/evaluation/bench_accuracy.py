@@ -180,12 +180,14 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         cap = cap_two_view_inliers(db, cap_of(method))
         rec = {"method": method, "match_s": base["match_s"] + cap["time_s"], "cap": cap,
                "command": f"guidedmatch colmap DB --max-inliers-per-pair {cap_of(method)}"}
-    elif method.startswith("ours@"):   # ours with matcher settings: ours@max_unguided=0.1 (guidedmatch colmap --config)
+    elif method.startswith("ours@"):   # ours with matcher settings: ours@max_unguided=0.1 (guidedmatch colmap --config), ";" between several
         copy_database(cache / "features.db", db)
         warm_up(cache, mdir)
+        items = [kv for kv in method[5:].split(";") if kv]   # ours@a=1;b=2: several settings
+        cfg = [a for kv in items for a in ("--config", kv)]
         t = _timed_process([sys.executable, "-c", OURS_MATCH_SCRIPT, "colmap", str(db), "--no-progress", "--log", "none",
-                            "--config", method[5:]], mdir / "match.log")
-        rec = {"method": method, "match_s": t, "command": f"guidedmatch colmap DB --config {method[5:]}"}
+                            *cfg], mdir / "match.log")
+        rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(f"--config {kv}" for kv in items)}
     elif method in ("ours+rescue", "ours+rescue+cap"):
         base = match("ours", cache, threads)
         copy_database(cache / "ours" / "database.db", db)

@@ -98,6 +98,8 @@ def report_markdown(report: dict) -> str:
                  f"{coll['skipped']} reused, {len(coll['failed'])} failed; "
                  f"{ma['verified_pairs']} verified pairs, {ma['verified_inliers']:,} inlier matches"
                  + (f" (COLMAP verification {_fmt_s(ma['verify_time_s'])} s)" if report['config']['geometry'] == 'colmap' else "")
+                 + (f"; second look at {lk['looked']} weak or rejected pairs: {lk['verified']} newly verified "
+                    f"({_fmt_s(lk['time_s'])} s)" if (lk := ma.get("second_look")) else "")
                  + (f"; the mapper gets at most {ic['max_inliers']} per pair ({ic['pairs_capped']} pairs capped "
                     f"this run: {ic['inliers_before']:,} -> {ic['inliers_after']:,})" if (ic := ma.get("inlier_cap")) else "")
                  + " |")

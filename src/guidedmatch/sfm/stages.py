@@ -291,14 +291,18 @@ def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLik
 
 # --------------------------------------------------------------------------- stage 2: matching
 def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
-                        max_inliers_per_pair: int = 0, expand: dict | None = None) -> dict:
+                        max_inliers_per_pair: int = 0, expand: dict | None = None,
+                        second_look: dict | None = None) -> dict:
     """The matching stage's work, shared by ``guidedmatch colmap`` and :func:`match_main`: the collection engine over
     ``pairs`` into the COLMAP ``database`` (pairs already there skipped); with ``geometry="colmap"`` pycolmap's
     verification of the pairs without a geometry; then at most ``max_inliers_per_pair`` inliers per pair for the
     mapper (0: all). ``expand`` (ExpansionConfig fields): then the verified expansion -- the pairs closing a
     triangle of verified pairs, in rounds (:func:`guidedmatch.collection.expansion.match_collection_expanded`).
+    ``second_look`` (SecondLookConfig fields; ``geometry="ours"`` only): then the rejected pairs that verified
+    neighbours tie together by enough chained correspondences are matched again with a longer unguided start
+    (:func:`guidedmatch.collection.second_look.second_look`).
     Returns ``{"report": CollectionReport, "match_time_s", "verified" (pairs verified by COLMAP
-    now, or None), "verify_time_s", "inlier_cap" (the cap's record or None)}``."""
+    now, or None), "verify_time_s", "second_look" (its record or None), "inlier_cap" (the cap's record or None)}``."""
     from ..collection.engine import match_collection
     from ..collection.sinks import ColmapSink
 
@@ -311,6 +315,11 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
             report = match_collection_expanded(source, pairs, sink, cconf, expand)
         else:
             report = match_collection(source, pairs, sink, cconf)
+        look = None
+        if second_look is not None and geometry == "ours":
+            from ..collection.second_look import second_look as run_second_look
+
+            look = run_second_look(source, sink, cconf, second_look)
         t_match = time.perf_counter() - t0
         if geometry == "colmap":
             t1 = time.perf_counter()
@@ -321,7 +330,7 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
         if max_inliers_per_pair:
             cap = sink.cap_inliers(max_inliers_per_pair)
     return {"report": report, "match_time_s": t_match, "verified": verified, "verify_time_s": t_verify,
-            "inlier_cap": cap}
+            "second_look": look, "inlier_cap": cap}
 
 
 #: ``pairs="auto"``: every pair up to this many images, else retrieval pairs + the verified expansion
@@ -367,15 +376,20 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
             cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
                                      scheduler=conf.scheduler, progress=conf.progress, log_path=str(paths.pair_log))
             done = match_into_database(source, pair_list.pairs, paths.database, cconf, geometry=conf.geometry,
-                                       max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand)
+                                       max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand,
+                                       second_look={} if conf.second_look else None)
         finally:
             source.close()
         pairs = database_pair_stats(paths.database)
+    look = done["second_look"]
+    if look is not None:
+        say(conf, f"      second look: {look['looked']} weak or rejected pairs matched again with a longer start, "
+                  f"{look['verified']} newly verified ({look['time_s']:.1f} s; stopped: {look['stopped']})")
     cap = done["inlier_cap"]
     if cap is not None:
         say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
                   f"{cap['max_inliers']} per pair; {cap['pairs_capped']} pairs capped)")
-    record.update({"time_s": time.perf_counter() - t0, "match_time_s": done["match_time_s"],
+    record.update({"time_s": time.perf_counter() - t0, "match_time_s": done["match_time_s"], "second_look": look,
                    "verify_time_s": done["verify_time_s"], "inlier_cap": cap, "pairs": len(pair_list.pairs),
                    "pair_list_report": pair_list.report, "collection": done["report"].to_dict(),
                    "verified_pairs": sum(p["verified"] for p in pairs),

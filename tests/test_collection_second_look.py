@@ -1,0 +1,251 @@
+"""Second look: rejected pairs tied by chained correspondences, matched again (guidedmatch.collection.second_look)."""
+from __future__ import annotations
+
+import itertools
+import shutil
+import sqlite3
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from guidedmatch.cli import main as cli_main
+from guidedmatch.collection.expansion import read_verified_graph
+from guidedmatch.collection.second_look import SecondLookConfig, chain_support, chained_correspondences, second_look
+from guidedmatch.errors import ConfigError
+
+CFG = dict(progress=False, workers=0, threads=1)
+
+
+def _chains_reference(a, c, inliers, names):
+    """Slow reference: every (i, k) with some b, i <-> j in a-b and j <-> k in b-c, one match at a time."""
+    def matches(x, y):
+        if (x, y) in inliers:
+            return [(int(p), int(q)) for p, q in inliers[(x, y)]]
+        if (y, x) in inliers:
+            return [(int(q), int(p)) for p, q in inliers[(y, x)]]
+        return None
+
+    out = set()
+    for b in names:
+        ab, bc = matches(a, b), matches(b, c)
+        if ab is None or bc is None or b in (a, c):
+            continue
+        for i, j in ab:
+            for j2, k in bc:
+                if j == j2:
+                    out.add((i, k))
+    return sorted(out)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(3, 6), st.floats(0.3, 1.0))
+def test_chained_correspondences_equal_the_slow_reference(seed, n, density):
+    rng = np.random.default_rng(seed)
+    names = [f"im{k}" for k in range(n)]
+    nkp = {x: int(rng.integers(5, 30)) for x in names}
+    inliers = {}
+    for x, y in itertools.combinations(names, 2):
+        if rng.random() < density:
+            m = int(rng.integers(0, min(nkp[x], nkp[y]) + 1))
+            # one-to-one matches (inliers of a two-view geometry are), stored in either order
+            pair = np.stack([rng.permutation(nkp[x])[:m], rng.permutation(nkp[y])[:m]], axis=1)
+            if rng.random() < 0.5:
+                inliers[(x, y)] = pair
+            else:
+                inliers[(y, x)] = pair[:, ::-1]
+    nbr = {}
+    for x, y in inliers:
+        nbr.setdefault(x, set()).add(y)
+        nbr.setdefault(y, set()).add(x)
+    for a, c in itertools.combinations(names, 2):
+        got = chained_correspondences(a, c, inliers, nkp, nbr)
+        assert got.tolist() == [list(p) for p in _chains_reference(a, c, inliers, names)]
+    assert chain_support([(names[0], names[1])], inliers, nkp) == [
+        len(_chains_reference(names[0], names[1], inliers, names))]
+
+
+def test_settings_are_validated():
+    for bad in (dict(min_chained=0), dict(max_unguided=0.0), dict(max_unguided=1.5), dict(max_rounds=-1),
+                dict(max_pairs_per_round=0)):
+        with pytest.raises(ConfigError):
+            SecondLookConfig(**bad)
+
+
+@pytest.fixture(scope="module")
+def matched_db(tmp_path_factory):
+    """A COLMAP database of a rendered sequence of 6 overlapping views + 1 view looking away, every pair matched."""
+    from guidedmatch.collection.engine import match_collection
+    from guidedmatch.collection.pairs import exhaustive_pairs
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import ColmapSource, images_to_database
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    d = tmp_path_factory.mktemp("second_look")
+    mv = make_multiview(6, (480, 360), seed=3, isolated=True, spacing=1.0)
+    write_views(mv, d / "img")
+    images_to_database(d / "img", d / "db.db", progress=False).close()
+    src = ColmapSource(d / "db.db")
+    with ColmapSink(d / "db.db") as sink:
+        match_collection(src, exhaustive_pairs(src.names()), sink, CFG)
+    src.close()
+    return d / "db.db"
+
+
+def _rows(db):
+    con = sqlite3.connect(db)
+    try:
+        return sorted(con.execute("SELECT pair_id, rows, config, data FROM two_view_geometries"))
+    finally:
+        con.close()
+
+
+def _reject(db, pairs):
+    """Rewrite the geometries of ``pairs`` as our sink writes a rejected pair (a row with no inliers)."""
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.geometry import two_view_geometry
+
+    none = two_view_geometry(np.zeros((0, 2)), np.zeros((0, 2)), (480, 360), (480, 360))
+    assert not none
+    with ColmapSink(db, overwrite=True) as sink:
+        for a, b in pairs:
+            sink.write(a, b, np.zeros((0, 2), np.int64), np.zeros(0, np.float32), none)
+
+
+def _strongest(db, k):
+    """The ``k`` verified pairs with the most inliers (a stand-in for pairs the first pass rejected)."""
+    con = sqlite3.connect(db)
+    try:
+        names = dict(con.execute("SELECT image_id, name FROM images"))
+        rows = sorted(con.execute("SELECT pair_id, rows FROM two_view_geometries WHERE rows > 0"), key=lambda r: -r[1])
+    finally:
+        con.close()
+    base = 2147483647
+    return [(names[(p - p % base) // base], names[p % base]) for p, _ in rows[:k]]
+
+
+class _Sink:
+    """A ColmapSink stand-in that raises after ``n`` writes (a crash mid-round); everything else is the sink's."""
+
+    def __init__(self, sink, n):
+        self._sink, self.n = sink, n
+
+    def __getattr__(self, name):
+        return getattr(self._sink, name)
+
+    def write(self, *a, **k):
+        if self.n <= 0:
+            raise KeyboardInterrupt("simulated crash")
+        self.n -= 1
+        return self._sink.write(*a, **k)
+
+
+def _weaken(db, pair, keep=20):
+    """Rewrite a verified pair as a weak one: its matches, only ``keep`` of them inliers."""
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import ColmapSource
+    from guidedmatch.matcher import match
+
+    src = ColmapSource(db)
+    res = match(src.load(pair[0]), src.load(pair[1]), "so+epi+ia", dict(exact_rent=0.0))
+    src.close()
+    mask = np.zeros(len(res), bool)
+    mask[np.flatnonzero(res.geometry.inliers)[:keep]] = True
+    with ColmapSink(db, overwrite=True) as sink:
+        sink.write(pair[0], pair[1], res.pairs, res.distances, res.geometry.with_inliers(mask))
+
+
+def _look(db, sink_wrapper=None, **look):
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import ColmapSource
+
+    src = ColmapSource(db)
+    try:
+        with ColmapSink(db) as sink:
+            return second_look(src, sink_wrapper(sink) if sink_wrapper else sink, CFG, {"weak_below": 0, **look})
+    finally:
+        src.close()
+
+
+def test_rejected_pairs_tied_by_chains_are_matched_again_and_verified(matched_db, tmp_path):
+    db = tmp_path / "db.db"
+    shutil.copyfile(matched_db, db)
+    ref = _rows(db)
+    pairs = _strongest(db, 2)
+    _reject(db, pairs)
+    _, verified = read_verified_graph(db)
+    assert not any(frozenset(p) in verified for p in pairs)
+    rec = _look(db)
+    tried, verified = read_verified_graph(db)
+    assert all(frozenset(p) in verified for p in pairs)
+    r1 = rec["rounds"][0]
+    assert r1["pairs"] == r1["candidates"] >= 2 and rec["verified"] >= 2 and rec["stopped"]
+    # the pairs matched again with a longer start: a strong pair is decided at its first check, so its rows come back
+    assert _rows(db) == ref
+    # the view looking away shares no verified neighbour with anything: never a candidate, never verified
+    iso = sorted(n for p in tried for n in p)[-1]
+    assert not any(iso in p for p in verified)
+    # a rerun replays the finished rounds: nothing is matched again
+    again = _look(db)
+    assert all(r.get("replayed") for r in again["rounds"]) and _rows(db) == ref
+
+
+def test_weak_pairs_are_matched_again_and_get_their_inliers_back(matched_db, tmp_path):
+    db2 = tmp_path / "db2.db"
+    shutil.copyfile(matched_db, db2)
+    ref = _rows(db2)
+    pair = _strongest(db2, 1)[0]
+    _weaken(db2, pair)
+    assert _rows(db2) != ref
+    rec = _look(db2, weak_below=21, min_chained=10**6)   # only the weakened pair has fewer than 21 inliers
+    assert rec["rounds"][0]["pairs"] == 1 and rec["verified"] == 0 and rec["inliers_gained"] > 0
+    assert _rows(db2) == ref  # matched again, the pair is what the first pass wrote
+
+
+def test_a_crash_in_a_round_then_a_rerun_gives_the_uninterrupted_database(matched_db, tmp_path):
+    ref = tmp_path / "ref.db"
+    shutil.copyfile(matched_db, ref)
+    pairs = _strongest(ref, 3)
+    _reject(ref, pairs)
+    db = tmp_path / "db.db"
+    shutil.copyfile(ref, db)
+    _look(ref)
+    with pytest.raises(KeyboardInterrupt):
+        _look(db, sink_wrapper=lambda s: _Sink(s, 1))
+    rec = _look(db)
+    assert _rows(db) == _rows(ref) and rec["verified"] >= 3
+
+
+def test_min_chained_above_every_chain_matches_nothing_and_max_rounds_zero_is_off(matched_db, tmp_path):
+    db = tmp_path / "db.db"
+    shutil.copyfile(matched_db, db)
+    _reject(db, _strongest(db, 1))
+    before = _rows(db)
+    rec = _look(db, min_chained=10**6)
+    assert rec["rounds"] == [] and rec["looked"] == 0 and "no rejected pair" in rec["stopped"] and _rows(db) == before
+    rec0 = _look(db, max_rounds=0, min_chained=16)
+    assert rec0["rounds"] == [] and rec0["stopped"] == "max_rounds=0 reached" and _rows(db) == before
+
+
+def test_the_second_look_needs_our_geometries(matched_db, tmp_path):
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import ColmapSource
+
+    db = tmp_path / "db.db"
+    shutil.copyfile(matched_db, db)
+    with ColmapSink(db, geometry="colmap") as sink, pytest.raises(ConfigError, match="geometry='ours'"):
+        second_look(ColmapSource(db), sink, CFG)
+
+
+def test_cli_second_look_is_on_by_default_and_reported(matched_db, tmp_path, capsys):
+    db = tmp_path / "db.db"
+    shutil.copyfile(matched_db, db)
+    _reject(db, _strongest(db, 1))
+    assert cli_main(["colmap", str(db), "--no-progress", "--log", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "second look:" in out and "newly verified" in out
+    db2 = tmp_path / "db2.db"
+    shutil.copyfile(matched_db, db2)
+    _reject(db2, _strongest(db2, 1))
+    assert cli_main(["colmap", str(db2), "--no-second-look", "--no-progress", "--log", "none"]) == 0
+    assert "second look" not in capsys.readouterr().out
