@@ -27,22 +27,22 @@ SRC = str(Path(__file__).resolve().parents[1] / "src")
 # --------------------------------------------------------------------------- when it overlaps
 def test_overlap_plan_says_when_and_why_not(tmp_path):
     names = [f"{i:03d}.jpg" for i in range(8)]
-    assert overlap_plan(SfmConfig(), names)[0] is True                        # the default: auto
+    assert overlap_plan(SfmConfig(), names) == (False, "pipeline=off", None)   # the default (measured)
     assert overlap_plan(SfmConfig(pipeline="auto"), names)[2] == "exhaustive"
     assert overlap_plan(SfmConfig(pipeline="off"), names) == (False, "pipeline=off", None)
-    ok, why, _ = overlap_plan(SfmConfig(pairs="sequential:3+retrieval:5"), names)
+    ok, why, _ = overlap_plan(SfmConfig(pairs="sequential:3+retrieval:5", pipeline="auto"), names)
     assert not ok and "retrieval part" in why
     many = [f"{i:03d}.jpg" for i in range(61)]
-    ok, why, _ = overlap_plan(SfmConfig(), many)
+    ok, why, _ = overlap_plan(SfmConfig(pipeline="auto"), many)
     assert not ok and "61 images > 60" in why
-    assert overlap_plan(SfmConfig(pairs="sequential:3"), many)[:3:2] == (True, "sequential:3")
+    assert overlap_plan(SfmConfig(pairs="sequential:3", pipeline="auto"), many)[:3:2] == (True, "sequential:3")
     for kw, needle in ((dict(detector="colmap"), "detector 'colmap'"), (dict(workers=2), "worker processes"),
                        (dict(scheduler="tcp://x:1"), "Dask")):
-        ok, why, _ = overlap_plan(SfmConfig(**kw), names)
+        ok, why, _ = overlap_plan(SfmConfig(pipeline="auto", **kw), names)
         assert not ok and needle in why
         with pytest.raises(ConfigError, match="pipeline='on' but .*" + needle.split()[0]):
             overlap_plan(SfmConfig(pipeline="on", **kw), names)
-    assert overlap_plan(SfmConfig(workers=0), names)[0] is True
+    assert overlap_plan(SfmConfig(workers=0, pipeline="auto"), names)[0] is True
     with pytest.raises(ConfigError, match="pipeline"):
         SfmConfig(pipeline="yes")
 
@@ -161,7 +161,7 @@ def test_retrieval_pairs_run_staged_and_say_why(views, tmp_path):
     from guidedmatch.sfm import run_sfm
 
     scene, folder = views
-    rep = run_sfm(folder, tmp_path / "r", {"pairs": "retrieval:3", "workers": 0, "num_threads": 2,
+    rep = run_sfm(folder, tmp_path / "r", {"pairs": "retrieval:3", "workers": 0, "num_threads": 2, "pipeline": "auto",
                                            "progress": False})
     assert rep["pipeline"]["overlapped"] is False and "retrieval part" in rep["pipeline"]["why"]
     assert "not overlapped (pairs 'retrieval:3' has a retrieval part" in (tmp_path / "r" / "report.md").read_text()

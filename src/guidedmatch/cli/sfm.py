@@ -197,10 +197,11 @@ def add_commands(sub, parents) -> None:
                    "mapper's time follows its observations, and on Herz-Jesus-P8 1000 gave poses at least as good as "
                    "all of them (docs/collections.md)")
     s.add_argument("--workers", type=int, default=None, help="matching worker processes (default: auto; 0 = in this process)")
-    s.add_argument("--pipeline", default="auto", choices=("auto", "on", "off"), help="match each pair as soon as both "
-                   "its images' features are written, while the others are extracted: auto (default: where the "
-                   "pairs allow it -- exhaustive, sequential, a pairs file; not retrieval), on (refused where they "
-                   "do not), off (extraction, then matching); the report says which ran and why")
+    s.add_argument("--pipeline", default="off", choices=("auto", "on", "off"), help="match each pair as soon as both "
+                   "its images' features are written, while the others are extracted: off (default: extraction, "
+                   "then matching; the overlap was no faster on Herz-Jesus-P8 on 2 cores, docs/sfm.md), auto (where "
+                   "the pairs allow it: exhaustive, sequential, a pairs file; not retrieval), on (refused where they "
+                   "do not); the report says which ran and why")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS", help="match on a running Dask cluster")
     add_mapping_options(s)
     _common_run_options(s, "extraction processes and COLMAP verification / mapping threads")

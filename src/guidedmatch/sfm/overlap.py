@@ -21,11 +21,17 @@ this process (the in-process collection engine: ``workers`` None or 0, no ``sche
   the first ``k`` names are all resolved, the pairs of the spec among the usable ones of them are final -- for
   ``sequential`` because every image between two of them in name order is among them, for ``exhaustive`` and pairs
   files trivially -- and oriented as the staged run orients them (images in image id order);
-* **CPU**: one pool of ``max(extraction workers, matching threads)`` threads, the extraction first: an image is
-  submitted whenever fewer than ``workers`` are being extracted, and a pair only takes a thread the extraction leaves
-  free (its tail, when fewer images than threads remain). The pool never holds more tasks than threads, so the
-  images in flight stay at most ``workers`` (plus at most ``workers`` finished ones waiting for an earlier image to
-  be written) and the pairs in flight at most the pool's size;
+* **CPU**: one pool of ``max(extraction workers, matching threads)`` threads, the extraction first: up to 2 images
+  per worker are queued (as :func:`~guidedmatch.extraction.extract_to_database` keeps them, so a thread never waits
+  for this thread to write an image), and a pair is submitted only to a thread no image is queued for -- in practice
+  the extraction's tail, when fewer images than threads remain, then every thread. Memory as in the staged
+  extraction: at most ``2 x workers`` images decoded or being detected, at most ``2 x workers`` finished images'
+  features waiting for an earlier image to be written, at most one pair per thread, and the loaded images of the
+  matching bounded by ``CollectionConfig.cache_mb``. Measured and not kept: pairs in a pool of their own (2
+  threads) beside the extraction's, matched as soon as both images are written -- on Herz-Jesus-P8 15-21 of the 28
+  pairs were matched during the extraction, but the run was no faster than the staged one (median 36.2 s vs 31.9 s,
+  3 alternating runs each, load 4-6 on 2 cores: the pairs take CPU from the extraction) and peaked at 3.4 GB
+  instead of 3.0 (``tools/ab_pipeline.py``; docs/sfm.md);
 * the stage's remainder (:func:`~guidedmatch.sfm.stages.match_main`) then runs as in the staged path over the final
   pair list: it finds every pair done (or matches what is not, e.g. after a resume with other images) and keeps at
   most ``max_inliers_per_pair`` inliers per pair.
@@ -56,8 +62,9 @@ def overlap_plan(conf: SfmConfig, names: list[str]) -> tuple[bool, str, str | No
 
     >>> overlap_plan(SfmConfig(pipeline="auto"), ["a.jpg", "b.jpg"])[:2]
     (True, 'pipeline=auto: pairs exhaustive are known as images are written')
-    >>> overlap_plan(SfmConfig(pipeline="auto", pairs="retrieval:5"), ["a.jpg", "b.jpg"])[:2]
-    (False, "pairs 'retrieval:5' has a retrieval part: its visual words and shortlist need every image's features first")
+    >>> ok, why, _ = overlap_plan(SfmConfig(pipeline="auto", pairs="retrieval:5"), ["a.jpg", "b.jpg"])
+    >>> ok, why[:40]
+    (False, "pairs 'retrieval:5' has a retrieval part")
     """
     from ..collection.pairs import has_retrieval
     from .stages import AUTO_EXHAUSTIVE_MAX_IMAGES
@@ -69,14 +76,16 @@ def overlap_plan(conf: SfmConfig, names: list[str]) -> tuple[bool, str, str | No
         why_not = (f"detector {conf.detector!r} extracts in worker processes that write the database themselves; "
                    "the overlap is implemented for the default detector 'sift'")
     elif conf.workers not in (None, 0) or conf.scheduler is not None:
-        why_not = "matching on worker processes or a Dask cluster (workers >= 1 or scheduler); the overlap matches in this process"
+        why_not = ("matching on worker processes or a Dask cluster (workers >= 1 or scheduler); the overlap matches "
+                   "in this process")
     elif spec == "auto":
         if len(names) > AUTO_EXHAUSTIVE_MAX_IMAGES:
             why_not = (f"pairs auto with {len(names)} images > {AUTO_EXHAUSTIVE_MAX_IMAGES}: retrieval pairs, whose "
                        "visual words and shortlist need every image's features first")
         spec = "exhaustive"
     elif has_retrieval(spec):
-        why_not = f"pairs {spec!r} has a retrieval part: its visual words and shortlist need every image's features first"
+        why_not = (f"pairs {spec!r} has a retrieval part: its visual words and shortlist need every image's features "
+                   "first")
     if why_not is not None:
         if conf.pipeline == "on":
             raise ConfigError(f"pipeline='on' but extraction and matching cannot overlap: {why_not}; use "
@@ -214,15 +223,18 @@ def extract_and_match(conf: SfmConfig, paths: SfmPaths, names: list[str], spec: 
 
             def fill() -> None:
                 nonlocal limits
-                while len(ext) < workers and len(ext) + writer.waiting < 2 * workers:
+                # images: as many queued as extract_to_database keeps (2 per worker: a thread never waits for this
+                # thread to write the previous image), and at most as many finished ones waiting for an earlier one
+                while len(ext) < 2 * workers and writer.waiting < 2 * workers:
                     name = next(pending, None)
                     if name is None:
                         break
                     ext[pool.submit(extract_image, paths.image_dir, name, econf)] = name
-                if limits is None and stream is not None:
-                    # the matcher's libraries (faiss, Numba) load here, in this thread, while the extraction runs
-                    limits = PairStream.thread_limits()
+                # pairs: only the threads no image is queued for (the pool runs its queue in order)
                 while stream is not None and stream.waiting and len(ext) + len(stream.inflight) < slots:
+                    if limits is None:
+                        # the matcher's libraries (faiss, Numba) load here, in this thread, when a thread is free
+                        limits = PairStream.thread_limits()
                     stream.submit(pool)
 
             advance()
