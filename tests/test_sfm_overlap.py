@@ -227,3 +227,14 @@ def test_kill_9_then_rerun_equals_an_uninterrupted_run(views, tmp_path, when):
     assert ex["extracted"] + ex["reused"] == 6 and ex["reused"] == len(killed["keypoints"])
     col = rep["stages"]["matching"]["collection"]
     assert col["done"] + col["skipped"] == 15 and col["skipped"] == len(killed["geometries"])
+
+
+def test_pipeline_on_where_it_cannot_overlap_is_refused_before_any_work(views, tmp_path):
+    scene, folder = views
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "guidedmatch.cli", "sfm", str(folder), str(out), "--pipeline", "on",
+                           "--pairs", "retrieval:3", "--quiet"], env=ENV, capture_output=True, text=True, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "pipeline='on' but extraction and matching cannot overlap" in lines[0] and "retrieval" in lines[0]
+    assert not out.exists()

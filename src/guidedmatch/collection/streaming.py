@@ -73,7 +73,8 @@ class PairStream:
                 self.added.add(key)
                 self.pairs.append((a, b))
                 fresh.append((a, b))
-        done = _done_pairs(self.sink, fresh) if fresh else set()
+        # (a sink without a candidates argument lists every pair it holds: only the fresh ones count)
+        done = (_done_pairs(self.sink, fresh) & {frozenset(p) for p in fresh}) if fresh else set()
         self.skipped += len(done)
         queued = 0
         for a, b in fresh:
