@@ -376,8 +376,12 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
                       + (f"; {early['during_extraction']} matched during the extraction, "
                          f"{early['report'].done if early['report'] else 0} in all before this pass"
                          if early is not None else ""))
+            # after an overlap, usually nothing is left for this pass: no empty progress bar then
+            left = (todo if early is None else
+                    [p for p in todo if frozenset(p) not in {frozenset(q) for q in early["oriented"]}])
             cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
-                                     scheduler=conf.scheduler, progress=conf.progress, log_path=str(paths.pair_log))
+                                     scheduler=conf.scheduler, progress=conf.progress and bool(left),
+                                     log_path=str(paths.pair_log))
             done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
                                        max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand)
         finally:
