@@ -262,3 +262,34 @@ def test_image_ids_follow_the_names(views, tmp_path):
     finally:
         d.close()
     assert seen == sorted(scene.names) and sorted(ids, key=ids.get) == sorted(scene.names)
+
+
+def test_ordered_writer_writes_in_name_order_whatever_the_completion_order(views, tmp_path):
+    """OrderedImageWriter (shared by extract_to_database and sfm's overlap): images finished out of order wait for
+    the ones before them; a damaged one is resolved in its place, named with its reason; image ids follow the names."""
+    pycolmap = pytest.importorskip("pycolmap")
+    from guidedmatch.collection.sink_base import open_pycolmap_database
+    from guidedmatch.extraction import OrderedImageWriter, extract_image
+
+    scene, folder = views
+    conf = ExtractionConfig(progress=False)
+    names = sorted(scene.names)
+    todo = names[:2] + ["zz_bad.png"] + names[2:]
+    feats = {n: extract_image(folder, n, conf) for n in names}
+    db_path = tmp_path / "w.db"
+    db = open_pycolmap_database(db_path)
+    try:
+        w = OrderedImageWriter(db, conf, db_path, todo)
+        assert w.add(feats[names[1]]) == [] and w.waiting == 1                  # waits for names[0]
+        assert w.add(("zz_bad.png", ImageReadError("zz_bad.png: truncated"))) == [] and w.waiting == 2
+        got = w.add(feats[names[0]])
+        assert [(n, f is not None) for n, _, f in got] == [(names[0], True), (names[1], True), ("zz_bad.png", False)]
+        assert [i for _, i, _ in got] == [1, 2, None] and w.waiting == 0
+        rest = [x for n in reversed(names[2:]) for x in w.add(feats[n])]
+        assert [n for n, _, _ in rest] == names[2:] and [i for _, i, _ in rest] == list(range(3, len(names) + 1))
+        assert w.failed == [{"name": "zz_bad.png", "reason": "zz_bad.png: truncated"}] and w.next == len(todo)
+    finally:
+        db.close()
+    assert database_keypoint_counts(db_path) == {n: len(feats[n].keypoints) for n in names}
+    with pytest.raises(ImageReadError, match="bad"):
+        OrderedImageWriter(None, ExtractionConfig(on_error="raise"), db_path, ["bad"]).add(("bad", ImageReadError("bad")))

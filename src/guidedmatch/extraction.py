@@ -60,7 +60,7 @@ from .validation import check_bool, check_choice, check_number, config_from
 
 __all__ = ["ExtractionConfig", "ImageFeatures", "EXTRACTORS", "read_grey", "exif_focal_px", "sift_opencv",
            "colmap_level_selection", "rootsift_uint8", "extract_image", "iter_features", "extract_to_database",
-           "extract_pycolmap", "database_keypoint_counts"]
+           "OrderedImageWriter", "extract_pycolmap", "database_keypoint_counts"]
 
 #: Extractors of :class:`ExtractionConfig`.
 EXTRACTORS = ("opencv", "pycolmap")
@@ -409,7 +409,8 @@ class _Writer:
             self.shared_rig = next((r.rig_id for r in db.read_all_rigs() if r.has_sensor(self.shared.sensor_id)),
                                    None)
 
-    def write(self, f: ImageFeatures) -> None:
+    def write(self, f: ImageFeatures) -> int:
+        """Write ``f`` (one transaction); returns its image id."""
         import pycolmap
 
         db = self.db
@@ -454,6 +455,56 @@ class _Writer:
                 db.update_descriptors(iid, desc)
             else:
                 db.write_descriptors(iid, desc)
+        return int(iid)
+
+
+class OrderedImageWriter:
+    """Writes finished images into an open database in the order of ``todo`` (image ids follow the names, as with
+    COLMAP's extractor), whatever order they finish in: an image waits in memory until every image before it is
+    written or has failed. One transaction per image (:class:`_Writer`), so a kill leaves complete images only.
+
+    :meth:`add` takes what :func:`iter_features` yields (features, or ``(name, ImageReadError)``) and returns the
+    images resolved by it, in ``todo`` order: ``(name, image id, features)`` for a written one, ``(name, None, None)``
+    for a damaged one (listed in ``failed`` with the reason; with ``on_error="raise"`` its error is raised instead).
+    """
+
+    def __init__(self, db, conf: ExtractionConfig, path: Path, todo: list[str], bar=None) -> None:
+        self._writer = _Writer(db, conf, path)
+        self.conf, self.todo, self.bar = conf, list(todo), bar
+        self.ready: dict = {}     # finished out of order, waiting for the images before them
+        self.next = 0             # todo[:next] are resolved
+        self.failed: list[dict] = []
+        self.read_s = self.detect_s = 0.0
+
+    @property
+    def waiting(self) -> int:
+        """Images finished but not yet written (held in memory)."""
+        return len(self.ready)
+
+    def add(self, item: "ImageFeatures | tuple[str, ImageReadError]") -> list[tuple]:
+        if isinstance(item, tuple):
+            name, exc = item
+            if self.conf.on_error == "raise":
+                raise exc
+            self.failed.append({"name": name, "reason": str(exc)})
+            if self.conf.progress and self.bar is not None:  # (otherwise the caller reports the returned "failed")
+                self.bar.write(f"skipping {name}: {exc}", file=sys.stderr)
+            self.ready[name] = None
+        else:
+            self.ready[item.name] = item
+        out = []
+        while self.next < len(self.todo) and self.todo[self.next] in self.ready:
+            name = self.todo[self.next]
+            f = self.ready.pop(name)
+            self.next += 1
+            if f is None:
+                out.append((name, None, None))
+                continue
+            iid = self._writer.write(f)
+            self.read_s += f.timing["read_s"]
+            self.detect_s += f.timing["detect_s"]
+            out.append((name, iid, f))
+        return out
 
 
 def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.PathLike,
@@ -494,39 +545,20 @@ def extract_to_database(image_dir: str | os.PathLike, database_path: str | os.Pa
         check_database_space(database_path, 0)  # opening a new database writes its schema
         db = open_pycolmap_database(database_path)
         try:
-            writer = _Writer(db, conf, database_path)
+            writer = OrderedImageWriter(db, conf, database_path, todo, bar=bar)
             gen = iter_features(image_dir, todo, conf)
-            ready: dict = {}       # finished out of order, waiting for the images before them
-            nxt = 0
             try:
                 for item in gen:
                     bar.update(1)
-                    if isinstance(item, tuple):
-                        name, exc = item
-                        if conf.on_error == "raise":
-                            raise exc
-                        failed.append({"name": name, "reason": str(exc)})
-                        if conf.progress:  # (otherwise the caller reports the returned "failed")
-                            bar.write(f"skipping {name}: {exc}", file=sys.stderr)
-                        ready[name] = None
-                    else:
-                        ready[item.name] = item
-                    # written in name order, so image ids follow the names as with COLMAP's extractor
-                    while nxt < len(todo) and todo[nxt] in ready:
-                        f = ready.pop(todo[nxt])
-                        nxt += 1
-                        if f is None:
-                            continue
-                        writer.write(f)
-                        read_s += f.timing["read_s"]
-                        detect_s += f.timing["detect_s"]
-                        if on_image is not None:
+                    for _name, _iid, f in writer.add(item):
+                        if on_image is not None and f is not None:
                             on_image(f)
             finally:
                 gen.close()
         finally:
             db.close()
             bar.close()
+        failed, read_s, detect_s = writer.failed, writer.read_s, writer.detect_s
     after = database_keypoint_counts(database_path)
     if conf.extractor == "pycolmap":   # COLMAP logs and skips an image it cannot read
         failed = [{"name": n, "reason": "COLMAP's reader could not read it (see its log)"}

@@ -56,7 +56,7 @@ def _conf(args, **extra):
 
     names = ("detector", "max_features", "max_image_size", "peak_threshold", "camera_model", "camera",
              "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "workers",
-             "scheduler", "mapper", "seed", "second_look")
+             "scheduler", "mapper", "seed", "second_look", "pipeline")
     kw = {k: getattr(args, k) for k in names if hasattr(args, k)}
     if getattr(args, "config", None):
         kw["matcher"] = parse_kv(args.config, "--config") or None
@@ -200,6 +200,11 @@ def add_commands(sub, parents) -> None:
                    help="match again, with a longer unguided start, the weak pairs and the rejected pairs that "
                         "verified neighbours tie together by chained matches (default: on; guidedmatch colmap --help)")
     s.add_argument("--workers", type=int, default=None, help="matching worker processes (default: auto; 0 = in this process)")
+    s.add_argument("--pipeline", default="off", choices=("auto", "on", "off"), help="match each pair as soon as both "
+                   "its images' features are written, while the others are extracted: off (default: extraction, "
+                   "then matching; the overlap was no faster on Herz-Jesus-P8 on 2 cores, docs/sfm.md), auto (where "
+                   "the pairs allow it: exhaustive, sequential, a pairs file; not retrieval), on (refused where they "
+                   "do not); the report says which ran and why")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS", help="match on a running Dask cluster")
     add_mapping_options(s)
     _common_run_options(s, "extraction processes and COLMAP verification / mapping threads")

@@ -151,6 +151,13 @@ class ColmapSink(MatchSink):
             raise
         self.written = 0
 
+    def add_image(self, name: str, image_id: int, num_keypoints: int) -> None:
+        """Make an image written into the database after this sink was opened known to it (its writer, in this
+        process, gives the facts: ``guidedmatch sfm`` writes pairs while the extraction still writes images)."""
+        self._ids[name] = int(image_id)
+        self._names[int(image_id)] = name
+        self._nkp[name] = int(num_keypoints)
+
     def _id(self, name: str) -> int:
         try:
             return self._ids[name]

@@ -362,6 +362,17 @@ class ColmapSource(FeatureSource):
                 time.sleep(delay)
                 delay = min(1.0, delay * 2)
 
+    def add_image(self, name: str, image_id: int, size: tuple[int, int], num_features: int) -> None:
+        """Make an image written into the database after this source was opened known to it (its writer, in this
+        process, gives the facts: ``guidedmatch sfm`` matching pairs while the extraction still writes images).
+        Images are added in the order they were written, so :meth:`names` stays in image id order."""
+        if name in self._sizes:
+            raise InputError(f"{self.path}: image {name!r} is already known to this source")
+        self._ids[name] = int(image_id)
+        self._sizes[name] = (int(size[0]), int(size[1]))
+        self._counts[name] = int(num_features)
+        self._names.append(name)
+
     def image_id(self, name: str) -> int:
         """COLMAP ``image_id`` of the image."""
         self._check_name(name)

@@ -13,6 +13,7 @@ from ..collection.sinks import WriteLock
 from ..errors import InputError
 from ..validation import config_from
 from .config import IMAGE_EXTENSIONS, SfmConfig, SfmPaths, say
+from .overlap import extract_and_match, overlap_plan
 from .report import plot_reconstruction, report_markdown
 from .stages import (check_output, database_pair_stats, extract_main, make_folder, map_main, match_main,
                      models_summary, project_file, write_project)
@@ -64,6 +65,7 @@ def main(conf: SfmConfig, paths: SfmPaths, command: str = "") -> dict:
     project = check_output(conf, paths, paths.project)
     if conf.pairs != "auto":
         check_pairs_spec(conf.pairs, names)   # a bad spec, a missing pairs file or unknown names fail here, before any work
+    overlap_plan(conf, names)                 # pipeline="on" where the stages cannot overlap: refused here
     make_folder(paths.out_dir, "OUT_DIR")
     make_folder(paths.database.parent, "database folder")
     with WriteLock(paths.database, reentrant=True):   # a second sfm on the same project refuses here (exit 2), before any write
@@ -78,12 +80,17 @@ def _main_locked(conf: SfmConfig, paths: SfmPaths, command: str, names: list[str
 
     write_project(paths.project, project)
 
-    # No matching set-up in a thread during the extraction: the extraction keeps both cores busy, and on
-    # Herz-Jesus-P8 the thread's imports and kernel loads cost the extraction more than they saved in matching.
-    extraction = extract_main(conf, paths, names)
+    overlap, why, spec = overlap_plan(conf, names)
+    if overlap:   # pairs matched as soon as both images are written (sfm/overlap.py)
+        extraction, early = extract_and_match(conf, paths, names, spec)
+    else:
+        # No matching set-up in a thread during the extraction: the extraction keeps both cores busy, and on
+        # Herz-Jesus-P8 the thread's imports and kernel loads cost the extraction more than they saved in matching.
+        say(conf, f"      extraction, then matching ({why})")
+        extraction, early = extract_main(conf, paths, names), None
     skipped = list(extraction["skipped"])
     names = _enough(names, skipped, paths.image_dir)
-    matching = match_main(conf, paths, names)
+    matching = match_main(conf, paths, names, early=early)
     # the report's bookkeeping (run metadata, per-pair table, the plotting library's import: ~0.5 s) runs in a thread
     # while the mapper works -- pycolmap releases the GIL and its mapping does not keep both cores busy
     side: dict = {}
@@ -110,6 +117,8 @@ def _main_locked(conf: SfmConfig, paths: SfmPaths, command: str, names: list[str
     stages = {"extraction": extraction, "matching": matching, "mapping": mapping}
     report = {"image_dir": str(paths.image_dir), "out_dir": str(paths.out_dir), "command": command,
               "config": dataclasses.asdict(conf), "num_images": len(names), "skipped_images": skipped,
+              "pipeline": {"setting": conf.pipeline, "overlapped": overlap, "why": why,
+                           **(matching.get("overlap") or {})},
               "stages": stages, "total_time_s": time.perf_counter() - t_start,
               "peak_rss_mb": max(max(s["peak_rss_mb"]["self"], s["peak_rss_mb"]["children"] or 0)
                                  for s in stages.values()),
@@ -137,6 +146,11 @@ def summary_line(report: dict) -> str:
     """The one line ``guidedmatch sfm`` ends with: time and peak memory per stage, the models."""
     st = report["stages"]
     parts = ", ".join(f"{k} {s['time_s']:.1f} s" for k, s in st.items())
+    ov = st["matching"].get("overlap")
+    if ov:   # the matching's time_s is what ran after the extraction
+        parts = parts.replace(f"matching {st['matching']['time_s']:.1f} s", f"matching {st['matching']['time_s']:.1f} s "
+                              f"after it ({ov['pairs_matched_during_extraction']}/{st['matching']['pairs']} pairs "
+                              "during the extraction)")
     skipped = f", {len(report['skipped_images'])} image(s) skipped" if report["skipped_images"] else ""
     return (f"done in {report['total_time_s']:.1f} s ({parts}; peak memory {report['peak_rss_mb']:,.0f} MB): "
             f"{models_summary(st['mapping'], report['num_images'])} ({st['mapping']['mapper']} mapper){skipped} -> "

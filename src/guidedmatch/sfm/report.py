@@ -108,6 +108,17 @@ def report_markdown(report: dict) -> str:
                  f"{len(mp['models'])} model(s)" + (", reused (same database and settings)" if mp.get("reused") else "")
                  + " |")
     lines.append(f"| total | {_fmt_s(report['total_time_s'])} | {report.get('peak_rss_mb', '')} | |")
+    pl = report.get("pipeline")
+    if pl:
+        if pl.get("overlapped"):
+            lines += ["", f"Extraction and matching overlapped ({pl['why']}): "
+                      f"{pl.get('pairs_matched_during_extraction', 0)} of {ma['pairs']} pairs matched during the "
+                      f"extraction, the first {_fmt_s(pl['first_pair_s']) + ' s' if pl.get('first_pair_s') is not None else '(none)'} "
+                      f"after the start; the matching row is the time after the extraction "
+                      f"({_fmt_s(pl.get('tail_after_extraction_s', 0.0))} s of it overlapped pairs, then the staged "
+                      "pass over the final pair list)."]
+        else:
+            lines += ["", f"Extraction, then matching: not overlapped ({pl['why']})."]
     models = mp["models"]
     lines += ["", "## Reconstruction", ""]
     if not models:

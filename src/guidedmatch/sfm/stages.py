@@ -355,8 +355,13 @@ def expansion_wanted(spec: str) -> dict | None:
     return {} if has_retrieval(spec) else None
 
 
-def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
-    """Stage 2: match the pair list with the collection engine into the database (:func:`match_into_database`)."""
+def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict | None = None) -> dict:
+    """Stage 2: match the pair list with the collection engine into the database (:func:`match_into_database`).
+
+    ``early``: what :func:`guidedmatch.sfm.overlap.extract_and_match` matched while the extraction ran. The pair list
+    is then made as in the staged path and every pair it already holds is skipped (pairs that failed there are not
+    tried again); the record counts both parts (``collection``), its ``time_s`` is the matching after the extraction
+    (the overlap's tail and this pass), and ``overlap`` says how much ran during the extraction."""
     from ..collection.engine import CollectionConfig
     from ..collection.pairs import pairs_from_spec
     from ..collection.sources import ColmapSource
@@ -371,11 +376,22 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
             pair_list = pairs_from_spec(spec, usable, source, retrieval=dict(progress=conf.progress),
                                         retrieval_cache=Path(str(paths.database) + ".retrieval.npz"))
             expand = expansion_wanted(spec)
+            todo = pair_list.pairs
+            if early is not None and early["report"] is not None:
+                gave_up = {frozenset(p) for p, _ in early["report"].failed}
+                todo = tuple(p for p in todo if frozenset(p) not in gave_up)
             say(conf, f"[2/3] matching ({conf.mode}, geometry {conf.geometry}): {len(pair_list.pairs)} pairs "
-                      f"({spec}{', then the verified expansion' if expand is not None else ''})")
+                      f"({spec}{', then the verified expansion' if expand is not None else ''})"
+                      + (f"; {early['during_extraction']} matched during the extraction, "
+                         f"{early['report'].done if early['report'] else 0} in all before this pass"
+                         if early is not None else ""))
+            # after an overlap, usually nothing is left for this pass: no empty progress bar then
+            left = (todo if early is None else
+                    [p for p in todo if frozenset(p) not in {frozenset(q) for q in early["oriented"]}])
             cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
-                                     scheduler=conf.scheduler, progress=conf.progress, log_path=str(paths.pair_log))
-            done = match_into_database(source, pair_list.pairs, paths.database, cconf, geometry=conf.geometry,
+                                     scheduler=conf.scheduler, progress=conf.progress and bool(left),
+                                     log_path=str(paths.pair_log))
+            done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
                                        max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand,
                                        second_look={} if conf.second_look else None)
         finally:
@@ -389,12 +405,52 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str]) -> dict:
     if cap is not None:
         say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
                   f"{cap['max_inliers']} per pair; {cap['pairs_capped']} pairs capped)")
-    record.update({"time_s": time.perf_counter() - t0, "match_time_s": done["match_time_s"], "second_look": look,
+    collection = done["report"].to_dict()
+    elapsed = time.perf_counter() - t0
+    if early is not None:
+        collection, overlap = _merge_early(early, collection, pair_list.pairs)
+        elapsed += early["end_s"] - early["extraction_end_s"]
+        record["overlap"] = overlap
+    record.update({"time_s": elapsed, "match_time_s": done["match_time_s"], "second_look": look,
                    "verify_time_s": done["verify_time_s"], "inlier_cap": cap, "pairs": len(pair_list.pairs),
-                   "pair_list_report": pair_list.report, "collection": done["report"].to_dict(),
+                   "pair_list_report": pair_list.report, "collection": collection,
                    "verified_pairs": sum(p["verified"] for p in pairs),
                    "verified_inliers": sum(p["inliers"] for p in pairs), "raw_matches": sum(p["matches"] for p in pairs)})
     return record
+
+
+def _merge_early(early: dict, late: dict, final_pairs) -> tuple[dict, dict]:
+    """The collection record of an overlapped run (the pairs matched during the extraction + the staged pass after
+    it) and the overlap's own record. Pairs the overlap matched that the final list does not hold (as oriented) are
+    counted in ``not_in_final_list``: it computes only pairs that are final, so anything there is a bug to report,
+    not to hide."""
+    rep = early["report"]
+    final = set(final_pairs)
+    stray = [list(p) for p in early["oriented"] if p not in final]
+    overlap = {"pairs_matched_during_extraction": early["during_extraction"],
+               "pairs_matched_overlapped": rep.done if rep is not None else 0,
+               "first_pair_s": early["first_pair_s"], "extraction_end_s": early["extraction_end_s"],
+               "overlap_end_s": early["end_s"], "tail_after_extraction_s": early["end_s"] - early["extraction_end_s"],
+               "not_in_final_list": len(stray), "not_in_final_list_examples": stray[:5]}
+    if rep is None:
+        return late, overlap
+    e = rep.to_dict()
+    merged = dict(late)
+    merged["done"] = e["done"] + late["done"]
+    merged["skipped"] = late["skipped"] - e["done"]       # what an earlier run had stored
+    merged["failed"] = e["failed"] + late["failed"]
+    merged["per_pair"] = e["per_pair"] + late["per_pair"]
+    merged["wall_s"] = e["wall_s"] + late["wall_s"]
+    totals = dict(e["totals"])
+    lt = late["totals"]
+    for key in ("matches", "inliers", "verified_pairs", "load_s", "match_s", "image_loads", "cache_hits"):
+        totals[key] = totals.get(key, 0) + (lt.get(key) or 0)
+    totals["verdicts"] = {k: e["totals"]["verdicts"].get(k, 0) + lt.get("verdicts", {}).get(k, 0)
+                          for k in {*e["totals"]["verdicts"], *lt.get("verdicts", {})}}
+    totals["pairs"] = lt.get("pairs", totals["pairs"])
+    totals["after_extraction"] = {k: lt.get(k) for k in ("backend", "backend_reason", "threads", "workers")}
+    merged["totals"] = totals
+    return merged, overlap
 
 
 def database_pair_stats(database: str | os.PathLike) -> list[dict]:
