@@ -249,3 +249,15 @@ def test_cli_second_look_is_on_by_default_and_reported(matched_db, tmp_path, cap
     _reject(db2, _strongest(db2, 1))
     assert cli_main(["colmap", str(db2), "--no-second-look", "--no-progress", "--log", "none"]) == 0
     assert "second look" not in capsys.readouterr().out
+
+
+def test_cli_says_when_the_second_look_cannot_run(matched_db, tmp_path, capsys):
+    db = tmp_path / "db.db"
+    shutil.copyfile(matched_db, db)
+    con = sqlite3.connect(db)
+    con.execute("DELETE FROM matches")
+    con.execute("DELETE FROM two_view_geometries")
+    con.commit()
+    con.close()
+    assert cli_main(["colmap", str(db), "--geometry", "colmap", "--no-progress", "--log", "none"]) == 0
+    assert "second look: not run" in capsys.readouterr().out

@@ -210,6 +210,8 @@ def cmd_colmap(args) -> int:
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
                                max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
                                second_look={} if args.second_look else None)
+    if args.second_look and args.geometry != "ours":
+        print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:
         print(f"second look: {look['looked']} weak or rejected pairs matched again with a longer start: "
               f"{look['verified']} newly verified, {look['inliers_gained']:+,} inliers ({look['time_s']:.2f} s, "

@@ -398,6 +398,8 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
             source.close()
         pairs = database_pair_stats(paths.database)
     look = done["second_look"]
+    if conf.second_look and conf.geometry != "ours":
+        say(conf, "      second look: not run (it reads our two-view geometries back: geometry ours)")
     if look is not None:
         say(conf, f"      second look: {look['looked']} weak or rejected pairs matched again with a longer start, "
                   f"{look['verified']} newly verified ({look['time_s']:.1f} s; stopped: {look['stopped']})")
