@@ -237,17 +237,17 @@ def test_the_second_look_needs_our_geometries(matched_db, tmp_path):
         second_look(ColmapSource(db), sink, CFG)
 
 
-def test_cli_second_look_is_on_by_default_and_reported(matched_db, tmp_path, capsys):
+def test_cli_second_look_is_off_by_default_and_reported_when_asked(matched_db, tmp_path, capsys):
     db = tmp_path / "db.db"
     shutil.copyfile(matched_db, db)
     _reject(db, _strongest(db, 1))
-    assert cli_main(["colmap", str(db), "--no-progress", "--log", "none"]) == 0
+    assert cli_main(["colmap", str(db), "--second-look", "--no-progress", "--log", "none"]) == 0
     out = capsys.readouterr().out
-    assert "second look:" in out and "newly verified" in out
+    assert "second look:" in out and "1 newly verified" in out
     db2 = tmp_path / "db2.db"
     shutil.copyfile(matched_db, db2)
     _reject(db2, _strongest(db2, 1))
-    assert cli_main(["colmap", str(db2), "--no-second-look", "--no-progress", "--log", "none"]) == 0
+    assert cli_main(["colmap", str(db2), "--no-progress", "--log", "none"]) == 0
     assert "second look" not in capsys.readouterr().out
 
 
@@ -259,5 +259,6 @@ def test_cli_says_when_the_second_look_cannot_run(matched_db, tmp_path, capsys):
     con.execute("DELETE FROM two_view_geometries")
     con.commit()
     con.close()
-    assert cli_main(["colmap", str(db), "--geometry", "colmap", "--no-progress", "--log", "none"]) == 0
+    assert cli_main(["colmap", str(db), "--geometry", "colmap", "--second-look", "--no-progress", "--log",
+                     "none"]) == 0
     assert "second look: not run" in capsys.readouterr().out

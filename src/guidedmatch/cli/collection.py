@@ -178,11 +178,11 @@ def add_expansion_options(p: argparse.ArgumentParser) -> None:
 
 
 def add_second_look_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=False,
                    help="after matching, match again with a 5x longer unguided start the weak verified pairs (< 64 "
                         "inliers) and the rejected pairs that verified neighbours tie together by >= 16 chained "
-                        "matches -- the wide-baseline pairs an exhaustive matcher verifies (default: on; --geometry "
-                        "ours; docs/collections.md)")
+                        "matches -- the wide-baseline pairs an exhaustive matcher verifies (default: off: it costs "
+                        "matching time; --geometry ours; docs/collections.md)")
 
 
 def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict | None:

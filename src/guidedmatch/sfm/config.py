@@ -105,7 +105,7 @@ class SfmConfig:
     matcher: dict | None = None        # MatcherConfig overrides, e.g. {"alignment": "c_inplane"}
     geometry: str = "ours"             # two-view geometry: "ours" (matcher's verdict written) | "colmap" (pycolmap verifies)
     max_inliers_per_pair: int = 1000   # inliers per pair handed to the mapper (spread over the image, best first); 0 = all
-    second_look: bool = True           # weak pairs, and rejected ones that verified neighbours tie by chained matches, are
+    second_look: bool = False          # weak pairs, and rejected ones that verified neighbours tie by chained matches, are
                                        # matched again with a longer unguided start (collection.second_look; "ours" only)
     workers: int | None = None         # matching worker processes; None = automatic, 0 = in this process (collection engine)
     scheduler: str | None = None       # address of a running Dask scheduler for matching
