@@ -113,12 +113,18 @@ def _pair_partner(x, y, inliers: dict, num_keypoints: dict) -> np.ndarray:
     return _partner(np.asarray(inliers[(y, x)], np.int64).reshape(-1, 2), num_keypoints[x], 1)
 
 
-def chain_support(candidates, inliers: dict, num_keypoints: dict) -> list[int]:
-    """Number of chained correspondences (:func:`chained_correspondences`) of every ``(a, c)`` in ``candidates``."""
+def _neighbours(inliers: dict) -> dict:
+    """``{image: set of images it has a verified pair with}`` of the verified pairs ``inliers`` holds."""
     neighbours: dict = {}
     for x, y in inliers:
         neighbours.setdefault(x, set()).add(y)
         neighbours.setdefault(y, set()).add(x)
+    return neighbours
+
+
+def chain_support(candidates, inliers: dict, num_keypoints: dict) -> list[int]:
+    """Number of chained correspondences (:func:`chained_correspondences`) of every ``(a, c)`` in ``candidates``."""
+    neighbours = _neighbours(inliers)
     return [len(chained_correspondences(a, c, inliers, num_keypoints, neighbours)) for a, c in candidates]
 
 
@@ -144,13 +150,11 @@ def _read_inliers(sink) -> tuple[set, dict, dict]:
 
 
 def _candidates(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondLookConfig):
-    """Rejected pairs (tried, not verified, not looked at yet) with a verified common neighbour and at least
-    ``min_chained`` chained correspondences, most chained first (ties by name); ``(pairs, support, total)``."""
+    """The pairs not looked at yet: weak verified pairs (fewer than ``weak_below`` inliers; support = inliers) and
+    rejected ones (tried, not verified) with a verified common neighbour and at least ``min_chained`` chained
+    correspondences (support = chains); highest support first (ties by name); ``(pairs, support, total)``."""
     verified = {frozenset(p) for p in inliers}
-    neighbours: dict = {}
-    for x, y in inliers:
-        neighbours.setdefault(x, set()).add(y)
-        neighbours.setdefault(y, set()).add(x)
+    neighbours = _neighbours(inliers)
     out = []
     for (x, y), m in inliers.items():
         p = frozenset((x, y))
@@ -191,11 +195,9 @@ class _Again:
         self.kind = getattr(sink, "kind", "")
 
     def done_pairs(self, candidates=None):
-        import inspect
+        from .engine import _done_pairs
 
-        takes = "candidates" in inspect.signature(self.sink.done_pairs).parameters
-        done = self.sink.done_pairs(candidates) if takes else self.sink.done_pairs()
-        return set(done) - self.again
+        return _done_pairs(self.sink, candidates) - self.again
 
     def write(self, *args, **kwargs):
         return self.sink.write(*args, **kwargs)
