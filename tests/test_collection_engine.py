@@ -118,18 +118,18 @@ def all_pairs(names):
     return [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
 
 
-def reference(feats, a, b, mode="so+epi+ia"):
+def reference(feats, a, b, mode="so+epi+ia", first=None, config=None):
     """The slow, obviously-correct path: one direct matcher call per pair (its result carries the verdict)."""
-    res = match(feats[a], feats[b], mode, MatcherConfig())
+    res = match(feats[a], feats[b], mode, config or MatcherConfig(), first=first)
     return res, res.geometry
 
 
-def assert_same_as_reference(sink, feats, pairs):
+def assert_same_as_reference(sink, feats, pairs, first=None, config=None):
     assert set(sink.rows) == {frozenset(p) for p in pairs}
     for a, b in pairs:
         n1, n2, got, scores, geom = sink.rows[frozenset((a, b))]
         assert (n1, n2) == (a, b)
-        res, g = reference(feats, a, b)
+        res, g = reference(feats, a, b, first=(first or {}).get((a, b)), config=config)
         np.testing.assert_array_equal(got, res.pairs)
         np.testing.assert_array_equal(scores, res.distances)
         assert geom.verdict == g.verdict and geom.num_inliers == g.num_inliers
@@ -177,6 +177,38 @@ def test_in_process_threads_give_the_direct_calls_matches_and_report_the_thread_
     assert rep.done == len(pairs) and not rep.failed and rep.totals["threads"] == threads
     assert_same_as_reference(sink, views, pairs)
     assert src.loads == 5 and f"{threads} thread" in rep.summary()
+
+
+GUIDED = MatcherConfig(auto_bf=False)   # these small views would be matched by brute force (which ignores a prior)
+
+
+def _late_priors(feats, pairs):
+    """A prior per pair that changes the matches: image-1 features the paper's order draws last (reversed draw)."""
+    from guidedmatch.matcher.start import draw_order
+
+    out = {}
+    for a, b in pairs:
+        f = feats[a]
+        order = draw_order(f.keypoints[:, 0], f.image_size[0], MatcherConfig().num_groups,
+                           np.random.default_rng(0).random(len(f), np.float32))
+        out[(a, b)] = [order[::-1][:300].copy()]
+    return out
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_prior_per_pair_reaches_the_matcher(views, threads):
+    """match_collection(first={pair: prior}) gives each pair the matches of match(..., first=prior), and they differ
+    from the matches without it for some pairs (the prior is not dropped on the way)."""
+    src, sink = DictSource(views), ListSink()
+    pairs = all_pairs(src.names())
+    first = _late_priors(views, pairs)
+    rep = match_collection(src, pairs, sink, dict(progress=False, workers=0, threads=threads, chunk_pairs=2,
+                                                  matcher=GUIDED), first=first)
+    assert rep.done == len(pairs) and not rep.failed
+    assert_same_as_reference(sink, views, pairs, first, GUIDED)
+    differ = [p for p in pairs
+              if not np.array_equal(sink.rows[frozenset(p)][2], reference(views, *p, config=GUIDED)[0].pairs)]
+    assert differ, "the prior changed no pair's matches"
 
 
 def test_auto_backend_rule(monkeypatch):
@@ -490,6 +522,16 @@ def test_two_worker_cluster_gives_the_same_matches(views, cluster_client, tmp_pa
     assert workers <= set(cluster_client.scheduler_info()["workers"]) and len(workers) >= 1
     # images are shipped to a worker once, not once per pair: loads <= images x workers < pairs x 2
     assert rep.totals["image_loads"] <= 5 * 2 < 2 * len(pairs)
+
+
+def test_a_prior_per_pair_reaches_the_cluster_workers(views, cluster_client):
+    src, sink = DictSource(views), ListSink()
+    pairs = all_pairs(src.names())
+    first = _late_priors(views, pairs)
+    rep = match_collection(src, pairs, sink, dict(progress=False, chunk_pairs=2, matcher=GUIDED), client=cluster_client,
+                           first=first)
+    assert rep.totals["backend"] == "client" and rep.done == 10 and not rep.failed
+    assert_same_as_reference(sink, views, pairs, first, GUIDED)
 
 
 def test_a_pair_killing_its_worker_is_quarantined_then_reported_others_complete(views, cluster_client):

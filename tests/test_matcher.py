@@ -423,7 +423,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra.numpy import arrays  # noqa: E402
 
-from guidedmatch.matcher import draw_order, mutual_check, one_to_one  # noqa: E402
+from guidedmatch.matcher import draw_order, mutual_check, one_to_one, tiered_draw_order  # noqa: E402
 
 
 def _draw_order_reference(x, width, groups, key):
@@ -446,6 +446,49 @@ def test_draw_order_equals_reference(x, groups, data):
     got = draw_order(x, 100.0, groups, key)
     assert got.dtype == np.int64
     assert got.tolist() == _draw_order_reference(x, 100.0, groups, key)
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=arrays(np.float64, st.integers(0, 60), elements=st.floats(0, 99.9)),
+       groups=st.integers(1, 9), data=st.data())
+def test_tiered_draw_order_equals_reference(x, groups, data):
+    """Tier by tier (a feature in several tiers counts in its first), each tier in the round-robin order of its own
+    features, then the rest: the plain-Python reference applied to each part."""
+    n = len(x)
+    key = data.draw(arrays(np.float32, n, elements=st.sampled_from([-2.0, -1.0, 0.0, 0.5, 3.0])))
+    idx = st.integers(0, max(n - 1, 0))
+    tiers = [np.array(data.draw(st.lists(idx, max_size=n if n else 0)), np.int64) for _ in range(data.draw(st.integers(0, 3)))]
+    want, seen = [], set()
+    for t in tiers + [np.arange(n)]:
+        part = sorted({int(i) for i in t} - seen)
+        seen |= set(part)
+        sub = _draw_order_reference(x[part], 100.0, groups, key[part])
+        want += [part[k] for k in sub]
+    got = tiered_draw_order(x, 100.0, groups, key, tiers)
+    assert got.dtype == np.int64 and got.tolist() == want
+    if not tiers:
+        assert got.tolist() == draw_order(x, 100.0, groups, key).tolist()
+
+
+def test_match_first_draws_the_prior_first_and_checks_it(scene_and_features):
+    """match(first=...): the prior's features are the first queries (the unguided start's first batch), the result is
+    still verified by its own matches; None is the paper's order; bad indices are a clear InputError."""
+    from guidedmatch.errors import InputError
+
+    s, f1, f2 = scene_and_features
+    plain = match(f1, f2, "so+epi+ia", FAST)
+    assert plain.pairs.tolist() == match(f1, f2, "so+epi+ia", FAST, first=None).pairs.tolist()
+    late = np.flatnonzero(_true(s, f1, f2, plain) & (plain.flags["phase"] > 0))[:40]
+    prior = plain.pairs[late, 0]          # features with a correct match that the paper's order draws late (guided)
+    assert len(prior) == 40
+    r = match(f1, f2, "so+epi+ia", FAST, first=[prior])
+    assert r.geometry.verdict == "verified" and np.mean(_true(s, f1, f2, r)) > 0.9
+    early = set(r.pairs[r.flags["phase"] == 0, 0].tolist())   # matched by the unguided start: drawn first
+    assert len(set(prior.tolist()) & early) >= 36, len(set(prior.tolist()) & early)
+    for bad, why in (([np.array([len(f1)])], "out of range"), ([np.array([0.5])], "integer"),
+                     ([np.array([-1])], "out of range")):
+        with pytest.raises(InputError, match=why):
+            match(f1, f2, "so+epi+ia", FAST, first=bad)
 
 
 def _one_to_one_reference(q, j, d):

@@ -43,7 +43,8 @@ def _start_local_cluster(n: int):
         return cluster, Client(cluster, set_as_default=False)
 
 
-def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, tasks_per_worker: int) -> dict:
+def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, tasks_per_worker: int,
+              firsts: dict | None = None) -> dict:
     """Run the queue on a Dask cluster; at most ``tasks_per_worker`` tasks per worker in flight.
 
     Locality without placement restrictions: each anchor image gets a tiny *token* task that loads it into a
@@ -86,7 +87,8 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
                     tokens[anchor] = client.submit(_anchor_token, source, spec, name, pure=False,
                                                    key=f"guidedmatch-anchor-{spec.run_id}-{seq}")
                 deps = (tokens[anchor],)
-            fut = client.submit(run_task, source, spec, task, *deps, pure=False,
+            mine = {tuple(p): firsts[tuple(p)] for p in task if tuple(p) in firsts} if firsts else None
+            fut = client.submit(run_task, source, spec, task, *deps, pure=False, firsts=mine,
                                 key=f"guidedmatch-pairs-{spec.run_id}-{seq}")
             inflight[fut] = (anchor, task, seq if not inflight else None)
             ac.add(fut)

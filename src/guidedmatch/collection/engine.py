@@ -136,7 +136,7 @@ def _done_pairs(sink, candidates) -> set:
 
 
 def match_collection(source, pairs, sink, config: CollectionConfig | dict | None = None, *,
-                     client=None) -> CollectionReport:
+                     client=None, first: dict | None = None) -> CollectionReport:
     """Match every pair of ``pairs`` with features from ``source`` and write them into ``sink``.
 
     Args:
@@ -148,6 +148,10 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             this process writes to it.
         config: :class:`CollectionConfig` or a dict of its fields.
         client: a :class:`distributed.Client` of a running cluster to use (not closed by this call).
+        first: ``{(name1, name2): prior}``, the matcher's prior draw order of some pairs (``first`` of
+            :func:`guidedmatch.matcher.match`: image-1 feature indices drawn first, as the pair is oriented in
+            ``pairs``), e.g. the chained keypoints of :mod:`~guidedmatch.collection.second_look`; sent with the task
+            of the pair only.
 
     Returns:
         :class:`CollectionReport`. Pairs that failed after their retries are listed in ``report.failed``;
@@ -236,11 +240,11 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             bar.set_postfix_str(backend, refresh=False)
         writer = _Writer(sink, cfg, queue, bar, log)
         if backend == "in-process":
-            facts = _run_inprocess(source, spec, queue, writer, threads=cfg.threads or _usable_cores())
+            facts = _run_inprocess(source, spec, queue, writer, threads=cfg.threads or _usable_cores(), firsts=first)
         elif backend == "none":
             facts = dict(cache_hits=0, image_loads=0, workers=0)
         else:
-            facts = _run_dask(use, source, spec, queue, writer, cfg.tasks_per_worker)
+            facts = _run_dask(use, source, spec, queue, writer, cfg.tasks_per_worker, firsts=first)
     except BaseException:
         if log is not None:
             log.close()

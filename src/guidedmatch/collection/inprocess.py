@@ -15,16 +15,19 @@ from .worker import _load_numba, _match_one
 from .writer import _Writer
 
 
-def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, threads: int = 1) -> dict:
+def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, threads: int = 1,
+                   firsts: dict | None = None) -> dict:
     """The pairs in this process: one after the other (``threads=1``), or ``threads`` pairs at once on a thread pool
     (each pool thread runs Numba's kernels single-threaded, faiss runs single-threaded for the run; the image cache
     and the prepared images' index builds are locked). The caller's thread is the one writer either way, results
-    are written in completion order, and the matches are the same as one after the other."""
+    are written in completion order, and the matches are the same as one after the other. ``firsts``: the prior
+    draw order of some pairs (:func:`~guidedmatch.collection.engine.match_collection`)."""
     cache = _ImageCache(source, spec)
+    firsts = firsts or {}
     if threads <= 1:
         while queue:
             anchor, task = queue.take()
-            outs = [_match_one(cache, a, b, spec, "in-process") for a, b in task]
+            outs = [_match_one(cache, a, b, spec, "in-process", firsts.get((a, b))) for a, b in task]
             queue.finished(anchor)
             for out in outs:
                 writer.handle(out)
@@ -38,7 +41,7 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
 
     def one(a: str, b: str) -> PairOutcome:
         kernels.limit_threads_here(1)  # this pool thread's kernel calls stay in it: the concurrency is across pairs
-        return _match_one(cache, a, b, spec, "in-process")
+        return _match_one(cache, a, b, spec, "in-process", firsts.get((a, b)))
 
     pending: collections.deque = collections.deque()  # (anchor, remaining pairs of its task)
     inflight: dict = {}

@@ -102,7 +102,9 @@ def _fallback_text(f) -> str:
     return f"{f.what}{f' (model update {at})' if at else ''}: {f.reason}"
 
 
-def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str) -> PairOutcome:
+def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str, first=None) -> PairOutcome:
+    """Match one pair (``first``: the matcher's prior draw order for it, :func:`guidedmatch.matcher.match`); any
+    error is the pair's outcome, never raised."""
     from ..matcher import match
 
     t0 = time.perf_counter()
@@ -111,7 +113,7 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
         A = cache.get(a, (a, b))
         B = cache.get(b, (a, b))
         t1 = time.perf_counter()
-        res = match(A.prepared, B.prepared, spec.mode, spec.matcher)
+        res = match(A.prepared, B.prepared, spec.mode, spec.matcher, first=first)
         t2 = time.perf_counter()
         geom = res.geometry
     except Exception as exc:  # noqa: BLE001 - reported per pair, retried by the client, never silently lost
@@ -125,12 +127,14 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str)
     return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats)
 
 
-def run_task(source, spec: _TaskSpec, pairs: list, *anchor_token) -> list[PairOutcome]:
+def run_task(source, spec: _TaskSpec, pairs: list, *anchor_token, firsts: dict | None = None) -> list[PairOutcome]:
     """A task: match ``pairs`` (list of ``(name1, name2)``) with the run's image cache of this process
-    (``anchor_token``: the result of :func:`_anchor_token`, only there to place the task)."""
+    (``anchor_token``: the result of :func:`_anchor_token`, only there to place the task; ``firsts``: the prior draw
+    order of some of the pairs, ``{(name1, name2): first}``, sent with the task that needs it)."""
     cache = _worker_cache(source, spec)
     worker = _worker_name()
-    return [_match_one(cache, a, b, spec, worker) for a, b in pairs]
+    firsts = firsts or {}
+    return [_match_one(cache, a, b, spec, worker, firsts.get((a, b))) for a, b in pairs]
 
 
 def _anchor_token(source, spec: _TaskSpec, anchor: str) -> str:

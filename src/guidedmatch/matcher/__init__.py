@@ -24,7 +24,9 @@ draw order, unguided start, verdict), ``models.py`` (step 3: F, alignment, spati
 
 1. **Draw order** (§III-A, "Feature Grouping", :func:`draw_order`): image-1 features are put into ``num_groups``
    x-intervals and drawn round-robin (within a group strongest response first, else a seeded random order), so the
-   first matches cover the whole image width.
+   first matches cover the whole image width. With a prior (``match(first=...)``: e.g. the keypoints a collection's
+   other images tie to image 2, :mod:`guidedmatch.collection.second_look`) its tiers are drawn first, each in this
+   order (:func:`tiered_draw_order`); nothing else changes.
 2. **Unguided start** (§III-A; the gate and the exit are beyond the paper, ``start.py``):
    drawn features are matched in mini-batches against all of image 2 (:class:`~guidedmatch.prepared.UnguidedSearch`):
    exactly (GEMM) for the first queries, until they have cost min(building image 2's index, ``exact_rent`` of the
@@ -91,8 +93,8 @@ from ..config import MODES, MatcherConfig, Mode
 from .filters import mutual_check, one_to_one
 from .models import GuidanceModels, Regions, search_regions
 from .run import match
-from .start import draw_order
+from .start import draw_order, tiered_draw_order
 from . import warmup  # noqa: E402,F401 - registers the matcher's kernel warm-ups with guidedmatch.jit
 
-__all__ = ["match", "MatcherConfig", "Mode", "MODES", "GuidanceModels", "Regions", "search_regions", "draw_order",
+__all__ = ["match", "MatcherConfig", "Mode", "MODES", "GuidanceModels", "Regions", "search_regions", "draw_order", "tiered_draw_order",
            "one_to_one", "mutual_check"]

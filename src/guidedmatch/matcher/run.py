@@ -13,6 +13,7 @@ import numpy as np
 from .. import kernels
 from ..bruteforce import check_descriptors, match_bruteforce
 from ..config import MatcherConfig, Mode
+from ..errors import InputError
 from ..features import as_features
 from ..jit import compile_monitor, exclude_compile_time
 from ..results import (CandidateStats, Fallback, MatchResult, MatchStats, ModelUpdate, PhaseTimes, default_flags,
@@ -26,7 +27,8 @@ from .state import _Accepted, _Collected, _frames
 
 
 # ====================================================================================================== entry point
-def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *, return_models: bool = False):
+def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *, return_models: bool = False,
+          first=None):
     """Match image-1 features to image-2 features with ``mode`` (the package's one matching entry point).
 
     Args:
@@ -36,6 +38,11 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
             :class:`~guidedmatch.config.Mode`.
         config: :class:`~guidedmatch.config.MatcherConfig`, a dict of its fields, or None (defaults).
         return_models: also return the final :class:`GuidanceModels` (None for ``bf`` or when no model was fitted).
+        first: a prior on which image-1 features are likely to have a match, e.g. from other images of a collection
+            (:mod:`guidedmatch.collection.second_look`): an int array of image-1 feature indices, or a sequence of
+            them (tiers, earliest first). Each tier is drawn before the rest, in the same round-robin draw order
+            (step 1); nothing else changes -- every drawn feature is still matched against all of image 2 and the
+            verdict decides on its own matches. None (default): the paper's draw order. Ignored by ``bf``.
 
     Returns:
         :class:`~guidedmatch.results.MatchResult`: ``pairs (M,2) int64`` sorted by image-1 index, ``distances (M,)
@@ -67,14 +74,41 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     f2 = p2.features if p2 is not None else as_features(features2, "features2")
     d1, d2, binary = check_descriptors(f1.descriptors, f2.descriptors,
                                        known_finite=p1 is not None and p2 is not None and p1.finite and p2.finite)
+    tiers = _tiers(first, len(d1))
     with compile_monitor() as jit:  # a first call compiles Numba kernels: reported apart from time_s
         why = _bf_wins(config, len(d1), len(d2), binary) if mode.guided else None
         run = None if not mode.guided or why else _GuidedRun(config, mode, p1 or prepare(f1), p2 or prepare(f2),
-                                                             d1, d2, binary)
+                                                             d1, d2, binary, first=tiers)
         res = _match_bf(config, f1, f2, d1, d2, binary, mode, why) if run is None else run.run()
     res = exclude_compile_time(res, jit.seconds)
     return (res, run.guidance if run is not None else None) if return_models else res
 
+
+
+def _tiers(first, n1: int) -> tuple[np.ndarray, ...]:
+    """``first`` (None, one index array or a sequence of them) as a tuple of int64 index arrays, checked against the
+    ``n1`` image-1 features (InputError naming the problem).
+
+    >>> _tiers([np.array([3, 1]), [0]], 4)
+    (array([3, 1]), array([0]))
+    >>> _tiers(np.array([2]), 4), _tiers(None, 4)
+    ((array([2]),), ())
+    """
+    if first is None:
+        return ()
+    tiers = (first,) if isinstance(first, np.ndarray) and first.ndim == 1 else tuple(first)
+    out = []
+    for t in tiers:
+        a = np.asarray(t)
+        if a.size == 0:
+            out.append(np.zeros(0, np.int64))
+            continue
+        if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
+            raise InputError(f"first: image-1 feature indices must be 1-D integer arrays, got {a.dtype} {a.shape}")
+        if a.min() < 0 or a.max() >= n1:
+            raise InputError(f"first: feature index out of range [0, {n1}): {int(a.min())}..{int(a.max())}")
+        out.append(a.astype(np.int64, copy=False))
+    return tuple(out)
 
 
 def _bf_wins(c: MatcherConfig, n1: int, n2: int, binary: bool) -> str | None:
@@ -144,8 +178,9 @@ def _kept(keep: np.ndarray, q, j, d, flags: dict, geometry):
 class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
     """State of one guided match (not public); :meth:`run` is the method in order."""
 
-    def __init__(self, config: MatcherConfig, mode: Mode, p1, p2, d1, d2, binary):
+    def __init__(self, config: MatcherConfig, mode: Mode, p1, p2, d1, d2, binary, first: tuple = ()):
         self.c = config
+        self.first = first  # tiers of image-1 features drawn before the rest (match(first=...))
         self.mode = mode
         self.p1, self.p2 = p1, p2  # guidedmatch.prepared.PreparedImage of each side
         self.f1, self.f2 = p1.features, p2.features

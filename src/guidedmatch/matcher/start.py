@@ -44,6 +44,26 @@ def draw_order(x: np.ndarray, width: float, num_groups: int, key: np.ndarray) ->
     return rr
 
 
+def tiered_draw_order(x: np.ndarray, width: float, num_groups: int, key: np.ndarray, tiers) -> np.ndarray:
+    """:func:`draw_order` tier by tier: the features of ``tiers[0]`` (index arrays; a feature in several tiers counts
+    in its first), then those of ``tiers[1]`` not drawn yet, ..., then all the others; each part in the round-robin
+    draw order of its own features. ``(N,) int64`` permutation.
+
+    >>> x = np.array([0.0, 1.0, 60.0, 61.0, 2.0])
+    >>> tiered_draw_order(x, 100.0, 2, np.array([3, 1, 2, 1, 2], np.float32), [np.array([0, 4])])
+    array([4, 0, 1, 3, 2])
+    """
+    n = len(x)
+    tier = np.full(n, len(tiers), np.int64)
+    for t in range(len(tiers) - 1, -1, -1):  # earlier tiers written last: they win
+        tier[np.asarray(tiers[t], np.int64)] = t
+    parts = []
+    for t in range(len(tiers) + 1):
+        idx = np.flatnonzero(tier == t)
+        if len(idx):
+            parts.append(idx[draw_order(x[idx], width, num_groups, key[idx])])
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
 
 def _argsort_f32(key: np.ndarray) -> np.ndarray:
     """Stable ascending argsort of float32 ``key`` (ties by index) through one SIMD sort of unique uint64 keys
@@ -58,7 +78,8 @@ class UnguidedStart:
     """Steps 1-2 of :class:`~guidedmatch.matcher.run._GuidedRun` (a mixin: the run's state lives in ``run.py``)."""
 
     def draw_order(self) -> np.ndarray:
-        """Step 1 (§III-A): :func:`draw_order` keyed by detector response (strongest first), else seeded noise."""
+        """Step 1 (§III-A): :func:`draw_order` keyed by detector response (strongest first), else seeded noise; with
+        a prior (``match(first=...)``) tier by tier (:func:`tiered_draw_order`)."""
         n1 = len(self.d1)
         if n1 == 0 or len(self.d2) == 0:
             return np.zeros(0, np.int64)
@@ -69,6 +90,8 @@ class UnguidedStart:
             key = -r.astype(np.float32)
         else:
             key = np.random.default_rng(self.c.seed).random(n1, np.float32)
+        if self.first:
+            return tiered_draw_order(x, w, self.c.num_groups, key, self.first)
         return draw_order(x, w, self.c.num_groups, key)
 
     def unguided_start(self, order: np.ndarray, got: _Collected) -> tuple[GuidanceModels | None, int]:
