@@ -1,37 +1,40 @@
-"""Second look: weak pairs, and rejected pairs that a third view ties together, matched again with a longer start.
+"""Second look: weak pairs, and rejected pairs that a third view ties together, matched again with a prior.
 
 The guided matcher rejects an unrelated pair cheaply: its unguided start stops after ``max_unguided`` of the
 ``N1 * N2`` comparisons (0.02 with the approximate index) without verified evidence, and a verified but *weak* pair
 (below ``guide_margin``, so nothing guides it) keeps only the unguided matches found within that budget. True pairs
 with a wide baseline -- a few dozen correct matches among 8192 features, where COLMAP's exhaustive matcher verifies
-15-100 inliers -- are rejected or starved that way. On buddha (67 images around a statue) COLMAP verified 712 pairs
-and we 425, and a budget of 0.1 for *every* pair (666 pairs) took the median pose error from 0.223 to 0.209 deg
-(COLMAP 0.217) -- at five times the cost of every unrelated pair.
+15-100 inliers -- are rejected or starved that way: the start draws features in the paper's order, and few of the
+first thousand have a match in the other image. On buddha (67 images around a statue) COLMAP verified 712 pairs
+and we 425; a budget of 0.1 for *every* pair (666 pairs) took the median pose error from 0.223 to 0.209 deg (COLMAP
+0.217) -- at five times the cost of every unrelated pair.
 
-The collection knows which pairs deserve the longer start:
+The collection knows which pairs deserve another look, and which of their features to try first:
 
-* **weak pairs**: verified with fewer than ``weak_below`` inliers (buddha: 124 pairs; a second look gave them 10,508
-  more inliers);
+* **weak pairs**: verified with fewer than ``weak_below`` inliers;
 * **rejected pairs tied by a third view**: if ``a-b`` and ``b-c`` are verified, keypoint ``i`` of ``a`` matched to
   ``j`` of ``b``, which is matched to ``k`` of ``c``, gives the *chained* correspondence ``a:i <-> c:k`` without
   comparing a descriptor of ``a`` and ``c``. A rejected pair with at least ``min_chained`` of them shares scene
-  points (buddha: 294 such pairs; 185 verified at 0.1). Images of different scenes have no verified common
-  neighbour: an across-scene pair is never looked at again.
+  points. Images of different scenes have no verified common neighbour: an across-scene pair is never looked at
+  again.
 
-:func:`second_look` matches them again with ``max_unguided`` raised to :attr:`SecondLookConfig.max_unguided` and
-nothing else changed: the verdict still decides on the pair's own unguided correspondences; the chains only choose
-the pairs. (Seeding the matcher with the chains as its first evidence was measured and rejected: its guided matches
-on wide baselines were 10 % wrong and the poses got worse, 0.230 -> 0.247 deg on buddha. The weak pairs alone, or
-the rejected ones alone, at 0.04 gave 0.220 and 0.224 deg; both at 0.1: 0.214 deg, AUC@1 0.735, COLMAP 0.217 /
-0.737; seed 0 of COLMAP's mapper, benchmarks/results/accuracy/history.md.) Pairs the second look verifies can tie
-new pairs together, so it runs in rounds until a round verifies nothing new, no candidate is left or ``max_rounds``
-ran (reported).
+:func:`second_look` matches them again with a **prior** (``prior=True``, :func:`priors`): image 1's chained
+keypoints are drawn first, then its *tracked* ones (inliers of any verified pair), then the rest (the matcher's
+``first``, :func:`guidedmatch.matcher.match`). Nothing else changes: every drawn feature is matched against all of
+image 2 with the ratio test and the verdict decides on the pair's own correspondences -- the chains choose the pairs
+and the order, never the evidence. (Seeding the matcher with the chains as its first *evidence* was measured and
+rejected: its guided matches on wide baselines were 10 % wrong and the poses got worse, 0.230 -> 0.247 deg on
+buddha.) With the prior the first pass's budget is enough: on 60 of buddha's candidates the prior at 0.02 verified
+51 (39 with >= 64 inliers, 5,481 inliers) in 2.4 s, the paper's order at 0.1 -- the earlier rule -- 52 (30, 4,318)
+in 6.4 s, at 0.02 22 (0). Pairs the second look verifies can tie new pairs together, so it runs in rounds until a
+round verifies nothing new, no candidate is left or ``max_rounds`` ran (reported).
 
 Resumable like the verified expansion: each round's pair list is saved (atomically) in
 ``<database>.second_look.json`` before it is matched, with a key of the settings and of the graph it started from
-(the tried pairs, and the verified pairs outside the saved rounds); a rerun replays an unfinished round (matching its
-pairs again gives the same rows), skips finished ones and stops where the finished run stopped, so a run killed at
-any moment, then rerun, ends with the same database as an uninterrupted run.
+(the tried pairs, and the verified pairs outside the saved rounds); the priors of a round come from the verified
+pairs outside it, which the round does not change; a rerun replays an unfinished round (matching its pairs again
+with the same priors gives the same rows), skips finished ones and stops where the finished run stopped, so a run
+killed at any moment, then rerun, ends with the same database as an uninterrupted run.
 """
 from __future__ import annotations
 
@@ -48,7 +51,8 @@ import numpy as np
 from ..errors import ConfigError
 from ..validation import check_number, config_from
 
-__all__ = ["SecondLookConfig", "chained_correspondences", "chain_support", "second_look"]
+__all__ = ["SecondLookConfig", "chained_correspondences", "chain_support", "priors", "second_look",
+           "tracked_keypoints"]
 
 
 @dataclass(frozen=True)
@@ -56,7 +60,9 @@ class SecondLookConfig:
     """Settings of :func:`second_look`."""
 
     min_chained: int = 16          # chained correspondences (through verified common neighbours) a rejected pair needs
-    max_unguided: float = 0.1      # the second look's unguided budget, a fraction of N1*N2 (first pass: 0.02)
+    max_unguided: float | None = None  # the second look's unguided budget, a fraction of N1*N2; None: the first
+                                   # pass's (0.02 with the index) -- the prior finds the matches within it
+    prior: bool = True             # draw image 1's chained keypoints first, then its tracked ones (matcher `first`)
     weak_below: int = 64           # verified pairs with fewer inliers (weak: matched unguided only) are looked at too
     max_rounds: int = 3            # rounds at most (0: no second look)
     max_pairs_per_round: int = 50_000  # candidates matched per round at most (most chained first)
@@ -64,7 +70,9 @@ class SecondLookConfig:
     def __post_init__(self) -> None:
         own = "SecondLookConfig"
         check_number(own, "min_chained", self.min_chained, lo=1, integer=True)
-        check_number(own, "max_unguided", self.max_unguided, lo=0, hi=1, lo_open=True)
+        check_number(own, "max_unguided", self.max_unguided, lo=0, hi=1, lo_open=True, allow_none=True)
+        if not isinstance(self.prior, bool):
+            raise ConfigError(f"{own}.prior must be True or False, got {self.prior!r}")
         check_number(own, "weak_below", self.weak_below, lo=0, integer=True)
         check_number(own, "max_rounds", self.max_rounds, lo=0, integer=True)
         check_number(own, "max_pairs_per_round", self.max_pairs_per_round, lo=1, integer=True)
@@ -120,6 +128,44 @@ def _neighbours(inliers: dict) -> dict:
         neighbours.setdefault(x, set()).add(y)
         neighbours.setdefault(y, set()).add(x)
     return neighbours
+
+
+def tracked_keypoints(inliers: dict, num_keypoints: dict) -> dict:
+    """``{image: sorted keypoint indices}`` of the keypoints that are an inlier of at least one verified pair.
+
+    >>> inl = {("a", "b"): np.array([[0, 5], [1, 6]]), ("c", "b"): np.array([[9, 5]])}
+    >>> {k: v.tolist() for k, v in sorted(tracked_keypoints(inl, {"a": 2, "b": 8, "c": 10}).items())}
+    {'a': [0, 1], 'b': [5, 6], 'c': [9]}
+    """
+    parts: dict = {}
+    for (x, y), m in inliers.items():
+        m = np.asarray(m, np.int64).reshape(-1, 2)
+        parts.setdefault(x, []).append(m[:, 0])
+        parts.setdefault(y, []).append(m[:, 1])
+    return {n: np.unique(np.concatenate(p)) for n, p in parts.items()}
+
+
+def priors(pairs, inliers: dict, num_keypoints: dict) -> dict:
+    """The matcher's prior draw order (``first`` of :func:`guidedmatch.matcher.match`) for every pair of ``pairs``, both
+    ways: ``{(a, c): (a's chained keypoints, a's tracked keypoints), (c, a): (c's ..., c's ...)}`` from the verified
+    pairs ``inliers`` (:func:`chained_correspondences`, :func:`tracked_keypoints`). A chained keypoint of ``a`` sees
+    a scene point that a common neighbour also sees in ``c``: it is the one most likely to find its match in ``c``;
+    a tracked one sees a point some other image sees.
+
+    >>> inl = {("a", "b"): np.array([[0, 5], [1, 6]]), ("c", "b"): np.array([[9, 5], [8, 7]])}
+    >>> p = priors([("a", "c")], inl, {"a": 2, "b": 8, "c": 10})
+    >>> [t.tolist() for t in p[("a", "c")]], [t.tolist() for t in p[("c", "a")]]
+    ([[0], [0, 1]], [[9], [8, 9]])
+    """
+    neighbours = _neighbours(inliers)
+    tracked = tracked_keypoints(inliers, num_keypoints)
+    none = np.zeros(0, np.int64)
+    out = {}
+    for a, c in pairs:
+        ch = chained_correspondences(a, c, inliers, num_keypoints, neighbours)
+        out[(a, c)] = (np.unique(ch[:, 0]), tracked.get(a, none))
+        out[(c, a)] = (np.unique(ch[:, 1]), tracked.get(c, none))
+    return out
 
 
 def chain_support(candidates, inliers: dict, num_keypoints: dict) -> list[int]:
@@ -205,10 +251,10 @@ class _Again:
 
 def second_look(source, sink, config=None, look: SecondLookConfig | dict | None = None, *,
                 state_path: str | os.PathLike | None | bool = True, client=None) -> dict:
-    """Match the rejected pairs with enough chained correspondences again, with a longer unguided start, in rounds
-    (module doc). ``sink``: an open :class:`~guidedmatch.collection.sinks.ColmapSink` with ``geometry="ours"``;
-    ``config``: the :class:`~guidedmatch.collection.engine.CollectionConfig` of the first pass (its matcher settings
-    are kept, ``max_unguided`` raised). Returns the stage record: ``rounds`` (per round: candidates, pairs,
+    """Match the weak pairs and the rejected pairs with enough chained correspondences again, with a prior (and
+    ``max_unguided`` when set), in rounds (module doc). ``sink``: an open
+    :class:`~guidedmatch.collection.sinks.ColmapSink` with ``geometry="ours"``; ``config``: the
+    :class:`~guidedmatch.collection.engine.CollectionConfig` of the first pass (its matcher settings are kept). Returns the stage record: ``rounds`` (per round: candidates, pairs,
     verified, time_s), ``verified`` (pairs the second look verified), ``stopped`` (why), ``time_s``, ``state``."""
     from .config import CollectionConfig
     from .engine import match_collection
@@ -218,7 +264,7 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         raise ConfigError("the second look reads our two-view geometries back: give a ColmapSink(geometry='ours')")
     cconf = config_from(CollectionConfig, config)
     base = cconf.matcher
-    budget = max(cfg.max_unguided, base.max_unguided or 0.0)
+    budget = base.max_unguided if cfg.max_unguided is None else max(cfg.max_unguided, base.max_unguided or 0.0)
     cconf = dataclasses.replace(cconf, matcher=dataclasses.replace(base, max_unguided=budget))
     t0 = time.perf_counter()
     db = Path(sink.path)
@@ -261,7 +307,11 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
                                inliers_gained=r.get("inliers_gained", 0), time_s=0.0, replayed=True))
             continue
         t1 = time.perf_counter()
-        rep = match_collection(source, pairs, _Again(sink, pairs), cconf, client=client)
+        first = None
+        if cfg.prior:  # from the graph without this round's own pairs: a replay after a crash finds the same priors
+            mine = {frozenset(p) for p in pairs}
+            first = priors(pairs, {p: m for p, m in inliers.items() if frozenset(p) not in mine}, nkp)
+        rep = match_collection(source, pairs, _Again(sink, pairs), cconf, client=client, first=first)
         tried, inliers, nkp = _read_inliers(sink)
         after = {frozenset(p): len(m) for p, m in inliers.items()}
         mine = [frozenset(p) for p in pairs]

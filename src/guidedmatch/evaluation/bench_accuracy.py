@@ -151,6 +151,9 @@ def warm_up(cache: Path, mdir: Path) -> None:
     _WARM.add(True)
 
 
+OURS_FLAGS = ("second_look",)   # ours@...;second_look: `guidedmatch colmap --second-look`, not a matcher setting
+
+
 def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
     """Stage 2, cached: ``cache/<method>/database.db`` + ``match.json``."""
     mdir = cache / method.replace("+", "_")
@@ -184,10 +187,12 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         copy_database(cache / "features.db", db)
         warm_up(cache, mdir)
         items = [kv for kv in method[5:].split(";") if kv]   # ours@a=1;b=2: several settings
-        cfg = [a for kv in items for a in ("--config", kv)]
+        flags = [f"--{kv.replace('_', '-')}" for kv in items if kv in OURS_FLAGS]   # ours@second_look: a CLI flag
+        cfg = [a for kv in items if kv not in OURS_FLAGS for a in ("--config", kv)] + flags
         t = _timed_process([sys.executable, "-c", OURS_MATCH_SCRIPT, "colmap", str(db), "--no-progress", "--log", "none",
                             *cfg], mdir / "match.log")
-        rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(f"--config {kv}" for kv in items)}
+        rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(
+            f"--{kv.replace('_', '-')}" if kv in OURS_FLAGS else f"--config {kv}" for kv in items)}
     elif method in ("ours+rescue", "ours+rescue+cap"):
         base = match("ours", cache, threads)
         copy_database(cache / "ours" / "database.db", db)
