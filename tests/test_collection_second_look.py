@@ -237,17 +237,18 @@ def test_the_second_look_needs_our_geometries(matched_db, tmp_path):
         second_look(ColmapSource(db), sink, CFG)
 
 
-def test_cli_second_look_is_off_by_default_and_reported_when_asked(matched_db, tmp_path, capsys):
-    db = tmp_path / "db.db"
-    shutil.copyfile(matched_db, db)
-    _reject(db, _strongest(db, 1))
-    assert cli_main(["colmap", str(db), "--second-look", "--no-progress", "--log", "none"]) == 0
-    out = capsys.readouterr().out
-    assert "second look:" in out and "1 newly verified" in out
+def test_cli_second_look_is_on_by_default_reported_and_can_be_turned_off(matched_db, tmp_path, capsys):
+    for k, flags in enumerate(([], ["--second-look"])):
+        db = tmp_path / f"db{k}.db"
+        shutil.copyfile(matched_db, db)
+        _reject(db, _strongest(db, 1))
+        assert cli_main(["colmap", str(db), *flags, "--no-progress", "--log", "none"]) == 0
+        out = capsys.readouterr().out
+        assert "second look:" in out and "1 newly verified" in out, out
     db2 = tmp_path / "db2.db"
     shutil.copyfile(matched_db, db2)
     _reject(db2, _strongest(db2, 1))
-    assert cli_main(["colmap", str(db2), "--no-progress", "--log", "none"]) == 0
+    assert cli_main(["colmap", str(db2), "--no-second-look", "--no-progress", "--log", "none"]) == 0
     assert "second look" not in capsys.readouterr().out
 
 
@@ -262,3 +263,8 @@ def test_cli_says_when_the_second_look_cannot_run(matched_db, tmp_path, capsys):
     assert cli_main(["colmap", str(db), "--geometry", "colmap", "--second-look", "--no-progress", "--log",
                      "none"]) == 0
     assert "second look: not run" in capsys.readouterr().out
+    for p in tmp_path.glob("db.db*"):   # by default it is simply not part of a --geometry colmap run
+        p.unlink()
+    shutil.copyfile(matched_db, db)
+    assert cli_main(["colmap", str(db), "--geometry", "colmap", "--no-progress", "--log", "none"]) == 0
+    assert "second look" not in capsys.readouterr().out

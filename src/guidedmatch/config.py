@@ -104,13 +104,13 @@ class MatcherConfig:
                                          # rotation: F and its band constrain nothing along the plane) and the final
                                          # matches still look planar (H inliers >= h_ratio * F inliers), drop the guided
                                          # matches that are not its inliers (Oxford wall 1-2: 2.2 % -> 0.6 % wrong)
-    frame_check: bool = False            # beyond the paper: drop the matches of a verified pair whose keypoint scale change
+    frame_check: bool = True             # beyond the paper: drop the matches of a verified pair whose keypoint scale change
                                          # (and rotation, with frame_check_deg) disagrees with the pair's (the verified
                                          # inliers' median log-scale ratio, circular mean rotation): a repeated
                                          # structure's twin in the epipolar band passes F but not its frame
                                          # (geometry.consistent_similarity). Scale only, 0.5 octave: buddha 0.230 ->
-                                         # 0.223 deg (COLMAP 0.217); but on the rendered 5-view test scene (COLMAP SIFT,
-                                         # 640x480) 1.85 deg instead of < 1: off by default
+                                         # 0.223 deg (COLMAP 0.217), wrong inliers 6.2 % -> 3.2 % with the second look
+                                         # (benchmarks/results/accuracy)
     frame_check_deg: float | None = None  # frame_check: largest rotation difference from the pair's, degrees; None:
                                          # the rotation is not checked (scale only)
     frame_check_octaves: float = 0.5     # frame_check: largest |log2 scale ratio| difference from the pair's

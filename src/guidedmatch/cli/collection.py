@@ -178,11 +178,11 @@ def add_expansion_options(p: argparse.ArgumentParser) -> None:
 
 
 def add_second_look_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=False,
-                   help="after matching, match again with a 5x longer unguided start the weak verified pairs (< 64 "
-                        "inliers) and the rejected pairs that verified neighbours tie together by >= 16 chained "
-                        "matches -- the wide-baseline pairs an exhaustive matcher verifies (default: off: it costs "
-                        "matching time; --geometry ours; docs/collections.md)")
+    p.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=None,
+                   help="after matching, match again the weak verified pairs (< 64 inliers) and the rejected pairs "
+                        "that verified neighbours tie together by >= 16 chained matches -- the wide-baseline pairs an "
+                        "exhaustive matcher verifies -- drawing the keypoints the chains point to first (default: on "
+                        "with --geometry ours, which it reads back; --no-second-look: off; docs/collections.md)")
 
 
 def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict | None:
@@ -200,7 +200,7 @@ def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict
 
 def cmd_colmap(args) -> int:
     from ..collection.sources import ColmapSource
-    from ..sfm.stages import match_into_database
+    from ..sfm.stages import match_into_database, second_look_on
 
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
@@ -209,11 +209,11 @@ def cmd_colmap(args) -> int:
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
                                max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
-                               second_look={} if args.second_look else None)
-    if args.second_look and args.geometry != "ours":
+                               second_look={} if second_look_on(args.second_look, args.geometry) else None)
+    if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:
-        print(f"second look: {look['looked']} weak or rejected pairs matched again with a longer start: "
+        print(f"second look: {look['looked']} weak or rejected pairs matched again with a prior: "
               f"{look['verified']} newly verified, {look['inliers_gained']:+,} inliers ({look['time_s']:.2f} s, "
               f"{len(look['rounds'])} round(s); stopped: {look['stopped']})")
     if done["verified"] is not None:

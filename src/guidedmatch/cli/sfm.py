@@ -196,9 +196,10 @@ def add_commands(sub, parents) -> None:
                    "per pair handed to the mapper, spread over the image, best first (default 1000; 0 = all): the "
                    "mapper's time follows its observations, and on Herz-Jesus-P8 1000 gave poses at least as good as "
                    "all of them (docs/collections.md)")
-    s.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=False,
-                   help="match again, with a longer unguided start, the weak pairs and the rejected pairs that "
-                        "verified neighbours tie together by chained matches (default: off; guidedmatch colmap --help)")
+    s.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=None,
+                   help="match again the weak pairs and the rejected pairs that verified neighbours tie together by "
+                        "chained matches, their chained keypoints drawn first (default: on with --geometry ours; "
+                        "guidedmatch colmap --help)")
     s.add_argument("--workers", type=int, default=None, help="matching worker processes (default: auto; 0 = in this process)")
     s.add_argument("--pipeline", default="off", choices=("auto", "on", "off"), help="match each pair as soon as both "
                    "its images' features are written, while the others are extracted: off (default: extraction, "

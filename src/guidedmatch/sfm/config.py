@@ -105,8 +105,9 @@ class SfmConfig:
     matcher: dict | None = None        # MatcherConfig overrides, e.g. {"alignment": "c_inplane"}
     geometry: str = "ours"             # two-view geometry: "ours" (matcher's verdict written) | "colmap" (pycolmap verifies)
     max_inliers_per_pair: int = 1000   # inliers per pair handed to the mapper (spread over the image, best first); 0 = all
-    second_look: bool = False          # weak pairs, and rejected ones that verified neighbours tie by chained matches, are
-                                       # matched again with a longer unguided start (collection.second_look; "ours" only)
+    second_look: bool | None = None    # weak pairs, and rejected ones that verified neighbours tie by chained matches, are
+                                       # matched again, their chained keypoints drawn first (collection.second_look);
+                                       # None: on with geometry "ours" (it reads our verdicts back), off with "colmap"
     workers: int | None = None         # matching worker processes; None = automatic, 0 = in this process (collection engine)
     scheduler: str | None = None       # address of a running Dask scheduler for matching
     mapper: str = "auto"               # "incremental" (pycolmap.incremental_mapping) | "global" (pycolmap.global_mapping)
@@ -148,7 +149,8 @@ class SfmConfig:
             raise ConfigError(f"{o}.max_inliers_per_pair must be 0 (all) or >= {MIN_MAPPER_INLIERS}: COLMAP's mapper "
                               f"needs {MIN_MAPPER_INLIERS} inliers in its initial pair (init_min_num_inliers); got "
                               f"{self.max_inliers_per_pair}")
-        check_bool(o, "second_look", self.second_look)
+        if self.second_look is not None:
+            check_bool(o, "second_look", self.second_look)
         check_number(o, "workers", self.workers, lo=0, integer=True, allow_none=True)
         check_choice(o, "mapper", self.mapper, (*MAPPERS, "auto"))
         check_number(o, "num_threads", self.num_threads, lo=-1, integer=True)

@@ -290,6 +290,16 @@ def extract_colmap_sift(database: str | os.PathLike, image_dir: str | os.PathLik
 
 
 # --------------------------------------------------------------------------- stage 2: matching
+def second_look_on(wanted: bool | None, geometry: str) -> bool:
+    """Whether the second look runs: ``wanted`` True / False as asked; None (the default) -- with our two-view
+    geometries (``geometry="ours"``), which it reads back; with COLMAP's verification it cannot run.
+
+    >>> second_look_on(None, "ours"), second_look_on(None, "colmap"), second_look_on(False, "ours")
+    (True, False, False)
+    """
+    return bool(wanted) if wanted is not None else geometry == "ours"
+
+
 def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
                         max_inliers_per_pair: int = 0, expand: dict | None = None,
                         second_look: dict | None = None) -> dict:
@@ -393,15 +403,15 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
                                      log_path=str(paths.pair_log))
             done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
                                        max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand,
-                                       second_look={} if conf.second_look else None)
+                                       second_look={} if second_look_on(conf.second_look, conf.geometry) else None)
         finally:
             source.close()
         pairs = database_pair_stats(paths.database)
     look = done["second_look"]
-    if conf.second_look and conf.geometry != "ours":
+    if conf.second_look is True and conf.geometry != "ours":
         say(conf, "      second look: not run (it reads our two-view geometries back: geometry ours)")
     if look is not None:
-        say(conf, f"      second look: {look['looked']} weak or rejected pairs matched again with a longer start, "
+        say(conf, f"      second look: {look['looked']} weak or rejected pairs matched again with a prior, "
                   f"{look['verified']} newly verified ({look['time_s']:.1f} s; stopped: {look['stopped']})")
     cap = done["inlier_cap"]
     if cap is not None:
