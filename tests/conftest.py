@@ -33,6 +33,17 @@ def rng():
     return np.random.default_rng(12345)
 
 
+@pytest.fixture(scope="session")
+def five_views(tmp_path_factory):
+    """5 rendered overlapping views (640x480, seed 0, known K / R / t) written as PNG files: ``(scene, folder)``,
+    shared by the extraction, sfm and sfm-benchmark tests -- read only (a test that adds files copies the folder)."""
+    mv = pytest.importorskip("guidedmatch.testing.multiview")
+    scene = mv.make_multiview(n_views=5, size=(640, 480), seed=0, isolated=False)
+    folder = tmp_path_factory.mktemp("five_views") / "images"
+    mv.write_views(scene, folder)
+    return scene, folder
+
+
 # ------------------------------------------------------------------------------------------------ collections
 @pytest.fixture(scope="session")
 def sequence_db(tmp_path_factory):
