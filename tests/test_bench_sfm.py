@@ -6,7 +6,6 @@ import json
 import math
 
 import numpy as np
-import pytest
 
 from guidedmatch.evaluation import bench_sfm
 
@@ -128,11 +127,10 @@ def _check_corrupted_inliers_are_wrong(mdir, before):
     np.testing.assert_array_equal(judge.xyz(pid), rec.points3D[pid].xyz)
 
 
-def test_colmap_baseline_on_rendered_scene(tmp_path):
+def test_colmap_baseline_on_rendered_scene(five_views, tmp_path):
     """The real protocol (extract, copy, match_exhaustive, map, GT poses) on 5 rendered views; a second run with
     merge keeps the first row and reuses the extracted database."""
-    mv = pytest.importorskip("guidedmatch.testing.multiview")
-    scene = mv.make_multiview(n_views=5, size=(640, 480), seed=0, isolated=False)
+    scene = five_views[0]
     _write_strecha_scene(tmp_path / "scene", scene)
     out = tmp_path / "out"
     res = bench_sfm.run(tmp_path / "scene", out, settings=("8192",), methods=["colmap"], threads=2, e2e=False)
@@ -192,13 +190,12 @@ def test_end_to_end_repeats_alternate_the_order_and_report_medians(monkeypatch, 
     assert "(30.0-36.0, 3 runs)" in bench_sfm.e2e_table(rows)
 
 
-def test_end_to_end_runs_both_pipelines_as_fresh_processes(tmp_path):
+def test_end_to_end_runs_both_pipelines_as_fresh_processes(five_views, tmp_path):
     """The real end-to-end protocol on 5 rendered views: ``guidedmatch sfm`` and the pycolmap-only script, each a
     fresh process from an empty folder, timed from start to exit; stage times inside the total; poses scored."""
-    mv = pytest.importorskip("guidedmatch.testing.multiview")
     from guidedmatch.evaluation.poses import read_strecha_cameras
 
-    scene = mv.make_multiview(n_views=5, size=(640, 480), seed=0, isolated=False)
+    scene = five_views[0]
     _write_strecha_scene(tmp_path / "scene", scene)
     gt = read_strecha_cameras(tmp_path / "scene" / "gt_dense_cameras")
     work = tmp_path / "work"

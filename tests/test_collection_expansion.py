@@ -42,19 +42,6 @@ def test_candidates_are_exactly_the_untried_triangle_closing_pairs():
     assert triangle_candidates(names, set(), set()) == ([], [], 0)
 
 
-@pytest.fixture(scope="module")
-def chain_db(tmp_path_factory):
-    """A COLMAP database of one rendered sequence of 6 overlapping views + 1 view looking away."""
-    from guidedmatch.collection.sources import images_to_database
-    from guidedmatch.testing.multiview import make_multiview, write_views
-
-    d = tmp_path_factory.mktemp("expansion")
-    mv = make_multiview(6, (480, 360), seed=3, isolated=True, spacing=1.0)
-    write_views(mv, d / "img")
-    images_to_database(d / "img", d / "db.db", progress=False).close()
-    return d / "db.db"
-
-
 def _rows(db):
     con = sqlite3.connect(db)
     try:
@@ -75,26 +62,9 @@ def _run(db, expand=None, sink_wrapper=None):
         return match_collection_expanded(src, pairs, use, CFG, expand)
 
 
-class _DieAfter:
-    """A ColmapSink stand-in that raises after ``n`` writes (a crash mid-stage)."""
-
-    def __init__(self, sink, n):
-        self.sink, self.n = sink, n
-        self.kind, self.path, self.geometry = sink.kind, sink.path, sink.geometry
-
-    def done_pairs(self, candidates=None):
-        return self.sink.done_pairs(candidates)
-
-    def write(self, *a, **k):
-        if self.n <= 0:
-            raise KeyboardInterrupt("simulated crash")
-        self.n -= 1
-        return self.sink.write(*a, **k)
-
-
-def test_rounds_add_the_triangle_closing_pairs_until_nothing_new_is_verified(chain_db, tmp_path):
+def test_rounds_add_the_triangle_closing_pairs_until_nothing_new_is_verified(sequence_db, tmp_path):
     db = tmp_path / "db.db"
-    shutil.copyfile(chain_db, db)
+    shutil.copyfile(sequence_db, db)
     rep = _run(db)
     names = sorted(n for n in _names(db))
     shortlist = _fs(sequential_pairs(names, 1))
@@ -125,32 +95,33 @@ def _names(db):
 
 
 @pytest.mark.parametrize("crash_after", [2, 8])
-def test_a_crash_in_any_stage_then_a_rerun_gives_the_uninterrupted_database(chain_db, tmp_path, crash_after):
+def test_a_crash_in_any_stage_then_a_rerun_gives_the_uninterrupted_database(sequence_db, tmp_path, crash_after,
+                                                                              crashing_sink):
     ref = tmp_path / "ref.db"
-    shutil.copyfile(chain_db, ref)
+    shutil.copyfile(sequence_db, ref)
     _run(ref, dict(max_pairs_per_round=2))  # capped rounds: the replayed round lists matter
     db = tmp_path / "db.db"
-    shutil.copyfile(chain_db, db)
+    shutil.copyfile(sequence_db, db)
     with pytest.raises(KeyboardInterrupt):
-        _run(db, dict(max_pairs_per_round=2), sink_wrapper=lambda s: _DieAfter(s, crash_after))
+        _run(db, dict(max_pairs_per_round=2), sink_wrapper=crashing_sink(crash_after))
     _run(db, dict(max_pairs_per_round=2))
     assert _rows(db) == _rows(ref)
 
 
-def test_max_rounds_zero_is_the_shortlist_only_and_caps_are_reported(chain_db, tmp_path):
+def test_max_rounds_zero_is_the_shortlist_only_and_caps_are_reported(sequence_db, tmp_path):
     db = tmp_path / "db.db"
-    shutil.copyfile(chain_db, db)
+    shutil.copyfile(sequence_db, db)
     rep = _run(db, dict(max_rounds=0))
     assert [s["stage"] for s in rep.stages] == ["shortlist"] and rep.expansion["stopped"] == "max_rounds=0"
     db2 = tmp_path / "db2.db"
-    shutil.copyfile(chain_db, db2)
+    shutil.copyfile(sequence_db, db2)
     rep2 = _run(db2, dict(max_pairs_per_round=1, max_rounds=2))
     assert rep2.expansion["rounds"] <= 2
     assert all(s["pairs"] <= 1 for s in rep2.stages[1:])
     assert rep2.expansion["capped_rounds"] == sum(bool(s["capped"]) for s in rep2.stages[1:]) >= 1
 
 
-def test_bad_settings_and_sinks_are_config_errors(chain_db, tmp_path):
+def test_bad_settings_and_sinks_are_config_errors(sequence_db, tmp_path):
     with pytest.raises(ConfigError):
         ExpansionConfig(max_rounds=-1)
     with pytest.raises(ConfigError):
@@ -163,24 +134,24 @@ def test_bad_settings_and_sinks_are_config_errors(chain_db, tmp_path):
     from guidedmatch.collection.sources import ColmapSource
 
     with pytest.raises(ConfigError, match="COLMAP database"):
-        match_collection_expanded(ColmapSource(chain_db), [], H5Like(), CFG)
+        match_collection_expanded(ColmapSource(sequence_db), [], H5Like(), CFG)
 
 
-def test_cli_expand_rounds_without_expansion_is_exit_2(chain_db, tmp_path, capsys):
+def test_cli_expand_rounds_without_expansion_is_exit_2(sequence_db, tmp_path, capsys):
     db = tmp_path / "db.db"
-    shutil.copyfile(chain_db, db)
+    shutil.copyfile(sequence_db, db)
     rc = cli_main(["colmap", str(db), "--pairs", "sequential:1", "--expand-rounds", "2", "--no-progress"])
     assert rc == 2 and "--expand-rounds needs" in capsys.readouterr().err
 
 
-def test_cli_retrieval_expands_by_default_and_no_expand_does_not(chain_db, tmp_path, capsys):
+def test_cli_retrieval_expands_by_default_and_no_expand_does_not(sequence_db, tmp_path, capsys):
     db = tmp_path / "db.db"
-    shutil.copyfile(chain_db, db)
+    shutil.copyfile(sequence_db, db)
     assert cli_main(["colmap", str(db), "--pairs", "retrieval:1", "--no-progress", "--log", "none"]) == 0
     out = capsys.readouterr().out
     assert "retrieval  :" in out and "shortlist  :" in out and "expansion  :" in out
     db2 = tmp_path / "db2.db"
-    shutil.copyfile(chain_db, db2)
+    shutil.copyfile(sequence_db, db2)
     assert cli_main(["colmap", str(db2), "--pairs", "retrieval:1", "--no-expand", "--no-progress", "--log",
                      "none"]) == 0
     assert "expansion" not in capsys.readouterr().out

@@ -10,8 +10,10 @@ from guidedmatch.collection.rescue import RescueConfig, confirmed_by_third_view,
 from guidedmatch.errors import ConfigError
 
 
-def _slow_confirmed(a, b, inliers, verified):
-    """Every inlier, every third image, dictionaries: obviously correct."""
+def _slow_third_view(a, b, inliers, verified, contradicted: bool = False):
+    """Every inlier, every third image, dictionaries: obviously correct. Per inlier ``(i, j)`` of ``a``-``b``: some
+    third image ``c`` with verified ``a``-``c`` and ``b``-``c`` maps ``i`` and ``j`` to the same keypoint of ``c``
+    (confirmed) -- or, with ``contradicted``, to different ones."""
     def partner(x, c):
         key = (min(x, c), max(x, c))
         if key not in verified:
@@ -22,12 +24,12 @@ def _slow_confirmed(a, b, inliers, verified):
     out = []
     images = {k for p in verified for k in p} - {a, b}
     for i, j in inliers:
-        ok = False
+        hit = False
         for c in images:
             pa, pb = partner(a, c), partner(b, c)
-            if pa is not None and pb is not None and i in pa and j in pb and pa[i] == pb[j]:
-                ok = True
-        out.append(ok)
+            if pa is not None and pb is not None and i in pa and j in pb and (pa[i] != pb[j]) == contradicted:
+                hit = True
+        out.append(hit)
     return out
 
 
@@ -48,7 +50,7 @@ def test_confirmed_by_third_view_matches_the_slow_reference(seed, n_images):
                 verified[(a, b)] = _one_to_one(rng, nkp[a], nkp[b], int(rng.integers(1, 20)))
     inliers = _one_to_one(rng, nkp[1], nkp[2], 12)
     got = confirmed_by_third_view(1, 2, inliers, verified, nkp)
-    assert got.tolist() == _slow_confirmed(1, 2, inliers, verified)
+    assert got.tolist() == _slow_third_view(1, 2, inliers, verified)
 
 
 def test_rescue_config_is_validated():
@@ -133,24 +135,6 @@ def test_a_pair_no_third_view_confirms_is_refused(matched_db, tmp_path):
     assert _geometries(path)[(a, b)] == 0
 
 
-def _slow_contradicted(a, b, inliers, verified):
-    def partner(x, c):
-        key = (min(x, c), max(x, c))
-        col = 0 if x < c else 1
-        return {int(r[col]): int(r[1 - col]) for r in verified.get(key, [])} if key in verified else None
-
-    out = []
-    images = {k for p in verified for k in p} - {a, b}
-    for i, j in inliers:
-        bad = False
-        for c in images:
-            pa, pb = partner(a, c), partner(b, c)
-            if pa is not None and pb is not None and i in pa and j in pb and pa[i] != pb[j]:
-                bad = True
-        out.append(bad)
-    return out
-
-
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 10_000), st.integers(3, 6))
 def test_contradicted_by_third_view_matches_the_slow_reference(seed, n_images):
@@ -162,4 +146,4 @@ def test_contradicted_by_third_view_matches_the_slow_reference(seed, n_images):
                 for a in nkp for b in nkp if a < b and (a, b) != (1, 2) and rng.random() < 0.7}
     inliers = _one_to_one(rng, nkp[1], nkp[2], 12)
     got = contradicted_by_third_view(1, 2, inliers, verified, nkp)
-    assert got.tolist() == _slow_contradicted(1, 2, inliers, verified)
+    assert got.tolist() == _slow_third_view(1, 2, inliers, verified, contradicted=True)

@@ -73,23 +73,20 @@ def test_settings_are_validated():
 
 
 @pytest.fixture(scope="module")
-def matched_db(tmp_path_factory):
-    """A COLMAP database of a rendered sequence of 6 overlapping views + 1 view looking away, every pair matched."""
+def matched_db(sequence_db, tmp_path_factory):
+    """The rendered sequence's database (6 overlapping views + 1 view looking away), every pair matched."""
     from guidedmatch.collection.engine import match_collection
     from guidedmatch.collection.pairs import exhaustive_pairs
     from guidedmatch.collection.sinks import ColmapSink
-    from guidedmatch.collection.sources import ColmapSource, images_to_database
-    from guidedmatch.testing.multiview import make_multiview, write_views
+    from guidedmatch.collection.sources import ColmapSource
 
-    d = tmp_path_factory.mktemp("second_look")
-    mv = make_multiview(6, (480, 360), seed=3, isolated=True, spacing=1.0)
-    write_views(mv, d / "img")
-    images_to_database(d / "img", d / "db.db", progress=False).close()
-    src = ColmapSource(d / "db.db")
-    with ColmapSink(d / "db.db") as sink:
+    db = tmp_path_factory.mktemp("second_look") / "db.db"
+    shutil.copyfile(sequence_db, db)
+    src = ColmapSource(db)
+    with ColmapSink(db) as sink:
         match_collection(src, exhaustive_pairs(src.names()), sink, CFG)
     src.close()
-    return d / "db.db"
+    return db
 
 
 def _rows(db):
@@ -122,22 +119,6 @@ def _strongest(db, k):
         con.close()
     base = 2147483647
     return [(names[(p - p % base) // base], names[p % base]) for p, _ in rows[:k]]
-
-
-class _Sink:
-    """A ColmapSink stand-in that raises after ``n`` writes (a crash mid-round); everything else is the sink's."""
-
-    def __init__(self, sink, n):
-        self._sink, self.n = sink, n
-
-    def __getattr__(self, name):
-        return getattr(self._sink, name)
-
-    def write(self, *a, **k):
-        if self.n <= 0:
-            raise KeyboardInterrupt("simulated crash")
-        self.n -= 1
-        return self._sink.write(*a, **k)
 
 
 def _weaken(db, pair, keep=20):
@@ -202,7 +183,7 @@ def test_weak_pairs_are_matched_again_and_get_their_inliers_back(matched_db, tmp
     assert _rows(db2) == ref  # matched again, the pair is what the first pass wrote
 
 
-def test_a_crash_in_a_round_then_a_rerun_gives_the_uninterrupted_database(matched_db, tmp_path):
+def test_a_crash_in_a_round_then_a_rerun_gives_the_uninterrupted_database(matched_db, tmp_path, crashing_sink):
     ref = tmp_path / "ref.db"
     shutil.copyfile(matched_db, ref)
     pairs = _strongest(ref, 3)
@@ -211,7 +192,7 @@ def test_a_crash_in_a_round_then_a_rerun_gives_the_uninterrupted_database(matche
     shutil.copyfile(ref, db)
     _look(ref)
     with pytest.raises(KeyboardInterrupt):
-        _look(db, sink_wrapper=lambda s: _Sink(s, 1))
+        _look(db, sink_wrapper=crashing_sink(1))
     rec = _look(db)
     assert _rows(db) == _rows(ref) and rec["verified"] >= 3
 

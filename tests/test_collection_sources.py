@@ -626,7 +626,8 @@ def test_reading_a_database_pycolmap_holds_keeps_its_locks(tmp_path):
     process holds must leave the lock in place."""
     from guidedmatch.collection.expansion import read_verified_graph
     from guidedmatch.collection.sink_base import open_pycolmap_database
-    from guidedmatch.collection.sources import _open_colmap, open_source
+    from guidedmatch.collection.colmap_source import _open_colmap
+    from guidedmatch.collection.sources import open_source
 
     path = tmp_path / "held.db"
     _sift_db(path)

@@ -10,28 +10,12 @@ import pytest
 from guidedmatch.collection.engine import match_collection
 from guidedmatch.collection.streaming import PairStream
 from guidedmatch.features import Features
-from guidedmatch.testing.twoview import intrinsics_matrix, look_at_rotation, project
-
-SIZE = (800, 600)
+from guidedmatch.testing.arc_views import arc_views
 
 
-def make_views(n_views: int = 4, n_points: int = 1000, seed: int = 3) -> dict[str, Features]:
+def make_views(n_views: int = 4) -> dict[str, Features]:
     """Cameras on an arc looking at a point cloud (overlapping views with known correspondences)."""
-    rng = np.random.default_rng(seed)
-    X = rng.uniform([-2.5, -2.0, 6.0], [2.5, 2.0, 9.0], (n_points, 3))
-    desc = rng.integers(0, 120, (n_points, 128)).astype(np.float32)
-    K = intrinsics_matrix(700.0, SIZE)
-    out = {}
-    for v in range(n_views):
-        c = np.array([0.5 * (v - (n_views - 1) / 2), 0.1 * v, 0.0])
-        R = look_at_rotation(c, (0.0, 0.0, 7.5), roll=0.05 * v)
-        x, z = project(K, R, c, X)
-        ok = (z > 0) & (x[:, 0] >= 0) & (x[:, 0] < SIZE[0]) & (x[:, 1] >= 0) & (x[:, 1] < SIZE[1])
-        keep = np.flatnonzero(ok & (rng.random(n_points) < 0.85))
-        keep = keep[rng.permutation(len(keep))]
-        d = desc[keep] + rng.normal(0, 4.0, (len(keep), 128)).astype(np.float32)
-        out[f"view{v}.jpg"] = Features(x[keep] + rng.normal(0, 0.3, (len(keep), 2)), np.clip(d, 0, 255), SIZE)
-    return out
+    return arc_views(n_views, 1000, seed=3)
 
 
 class Source:

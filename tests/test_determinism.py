@@ -30,7 +30,7 @@ from guidedmatch.features import Features
 from guidedmatch.matcher import MatcherConfig, match
 from guidedmatch.prepared import prepare
 from guidedmatch.testing.scenes import make_scene
-from guidedmatch.testing.twoview import intrinsics_matrix, look_at_rotation, project
+from guidedmatch.testing.arc_views import arc_views
 
 SIZE = (800, 600)
 
@@ -153,26 +153,10 @@ def test_ivf_search_is_exact_over_the_probed_cells():
 
 
 # ------------------------------------------------------------------------------------------------ pairs
-def make_views(n_views: int = 3, n_points: int = 2600, seed: int = 0) -> dict:
+def make_views() -> dict:
     """Cameras on an arc looking at a point cloud (non-integer float descriptors: integers plus noise), plus an
     unrelated view."""
-    rng = np.random.default_rng(seed)
-    X = rng.uniform([-2.5, -2.0, 6.0], [2.5, 2.0, 9.0], (n_points, 3))
-    desc = rng.integers(0, 120, (n_points, 128)).astype(np.float32)
-    K = intrinsics_matrix(700.0, SIZE)
-    out = {}
-    for v in range(n_views):
-        c = np.array([0.5 * (v - (n_views - 1) / 2), 0.1 * v, 0.0])
-        R = look_at_rotation(c, (0.0, 0.0, 7.5), roll=0.05 * v)
-        x, z = project(K, R, c, X)
-        ok = (z > 0) & (x[:, 0] >= 0) & (x[:, 0] < SIZE[0]) & (x[:, 1] >= 0) & (x[:, 1] < SIZE[1])
-        keep = np.flatnonzero(ok & (rng.random(n_points) < 0.85))
-        d = desc[keep] + rng.normal(0, 4.0, (len(keep), 128)).astype(np.float32)
-        out[f"view{v}.jpg"] = Features(x[keep] + rng.normal(0, 0.3, (len(keep), 2)), np.clip(d, 0, 255), SIZE)
-    n = 2200
-    out["other.jpg"] = Features(rng.uniform(0, 1, (n, 2)) * SIZE, rng.integers(0, 120, (n, 128)).astype(np.float32)
-                                + rng.random((n, 128)).astype(np.float32), SIZE)
-    return out
+    return arc_views(3, 2600, 0, shuffle=False, unrelated=2200, fractional_unrelated=True)
 
 
 def rootsift(f: Features) -> Features:

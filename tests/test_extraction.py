@@ -163,12 +163,9 @@ def test_config_checks():
 
 # --------------------------------------------------------------------------- database
 @pytest.fixture(scope="module")
-def views(tmp_path_factory):
-    mv = pytest.importorskip("guidedmatch.testing.multiview")
-    scene = mv.make_multiview(n_views=5, size=(640, 480), seed=0, isolated=False)
-    folder = tmp_path_factory.mktemp("mv") / "images"
-    mv.write_views(scene, folder)
-    return scene, folder
+def views(five_views):
+    """5 rendered views (conftest's ``five_views``): ``(scene, folder)``."""
+    return five_views
 
 
 def test_database_resume_damaged_image_and_generator(views, tmp_path):

@@ -71,9 +71,10 @@ total = 0.0
 for mode in ("bf", "epi", "so", "so+epi", "so+epi+ia"):
     total += jit.warm_up(f1, f2, mode, dict(auto_bf=False), note=False)  # guided on these ~1k features too
 print("FOREGROUND_COMPILE", total)
-from guidedmatch import exact, kernels
+from guidedmatch import exact, kernels, strip_index
 from guidedmatch.spatial_order import _kernels as so
-print("USED", sorted(n for m in (exact, kernels, so) for n, v in vars(m).items() if getattr(v, "overloads", None)))
+print("USED", sorted(set(n for m in (exact, kernels, strip_index, so) for n, v in vars(m).items()
+                         if getattr(v, "overloads", None))))
 """
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "GUIDEDMATCH_BACKGROUND_COMPILE": "1"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)

@@ -11,7 +11,7 @@ from hypothesis import given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 from threadpoolctl import threadpool_info
 
-from guidedmatch import kernels
+from guidedmatch import kernel_threads, kernels
 from guidedmatch.bruteforce import DenseKnn2, knn2
 from guidedmatch.exact import l2
 
@@ -736,14 +736,14 @@ def test_chunked_runs_in_threads_and_survives_a_fork():
         seen.add(threading.get_ident())
         return (a, b)
 
-    parts = kernels._chunked(fn, 1000, 100, threads=2)
+    parts = kernel_threads._chunked(fn, 1000, 100, threads=2)
     assert parts == [(0, 500), (500, 1000)] and len(seen) == 2  # contiguous chunks, in order, two threads
-    assert kernels._chunked(fn, 99, 100, threads=2) == [(0, 99)]  # small: the calling thread only
+    assert kernel_threads._chunked(fn, 99, 100, threads=2) == [(0, 99)]  # small: the calling thread only
     if "fork" not in multiprocessing.get_all_start_methods():
         pytest.skip("no fork on this platform")
     ctx = multiprocessing.get_context("fork")
     q = ctx.Queue()
-    p = ctx.Process(target=lambda: q.put(kernels._chunked(lambda a, b: b - a, 1000, 100, threads=2)))
+    p = ctx.Process(target=lambda: q.put(kernel_threads._chunked(lambda a, b: b - a, 1000, 100, threads=2)))
     p.start()
     p.join(60)
     if p.exitcode is None:

@@ -4,6 +4,7 @@ files, resume."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -138,12 +139,11 @@ def test_plot_reconstruction(tmp_path):
 
 # --------------------------------------------------------------------------- end to end (rendered collection)
 @pytest.fixture(scope="module")
-def rendered(tmp_path_factory):
-    """5 rendered views (640x480, known K / R / t) plus one unreadable file among them."""
-    mv = pytest.importorskip("guidedmatch.testing.multiview")
-    scene = mv.make_multiview(n_views=5, size=(640, 480), seed=0, isolated=False)
+def rendered(five_views, tmp_path_factory):
+    """5 rendered views (640x480, known K / R / t; conftest's ``five_views``) plus one unreadable file among them."""
+    scene, views = five_views
     folder = tmp_path_factory.mktemp("mv") / "images"
-    mv.write_views(scene, folder)
+    shutil.copytree(views, folder)
     (folder / "zz_broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 64)
     return scene, folder
 
@@ -264,8 +264,6 @@ def test_mapper_profile_tool_reads_colmaps_log(rendered, tmp_path):
 def _truncated_copy(folder: Path, dest: Path) -> Path:
     """``folder``'s views plus ``cut.jpg``: a JPEG cut to half its bytes (libjpeg decodes it partially, with only a
     warning on stderr)."""
-    import shutil
-
     shutil.copytree(folder, dest)
     (dest / "zz_broken.png").unlink()
     img = cv2.imread(str(folder / "view_00.png"), cv2.IMREAD_GRAYSCALE)

@@ -1,9 +1,9 @@
 """Numba compilation kept out of reported timings.
 
-The kernels (:mod:`guidedmatch.kernels`, :mod:`guidedmatch.spatial_order`) are compiled by Numba the first time
-they see a descriptor kind (``cache=True`` stores the machine code next to the sources, or in
-``NUMBA_CACHE_DIR``, so later processes only load it). A first call therefore costs seconds of compilation that
-are not matching time. This module
+The kernels (:mod:`guidedmatch.kernels`, :mod:`guidedmatch.strip_index`, :mod:`guidedmatch.spatial_order`) are
+compiled by Numba the first time they see a descriptor kind (``cache=True`` stores the machine code next to the
+sources, or in ``NUMBA_CACHE_DIR``, so later processes only load it). A first call therefore costs seconds of
+compilation that are not matching time. This module
 
 * measures compilation through Numba's ``"numba:compile"`` event, which fires only on a cache miss
   (:class:`CompileMonitor`, :func:`compile_monitor`);

@@ -10,17 +10,33 @@ are exact; float ones depend on the summation order (the CPU's vector width, the
 callers recompute the best few exactly (:mod:`guidedmatch.exact`) and report L2 (Euclidean, not squared): the
 float32 square root of the exact squared distance. ``MatchResult.distances`` are L2 or Hamming bits.
 Index ``-1`` and distance ``+inf`` mean "no such candidate".
+
+What lives where:
+
+* here -- the distance primitives (``desc_dist``: float / byte-valued L2, Hamming), the dense kernels (GEMM top-k,
+  Hamming brute force), the search-region kernel and the guided candidate kernel, with their Python entry points
+  (:func:`topk_block`, :func:`topk_gemm`, :func:`hamming_top2`, :func:`hamming_col_best`, :func:`guided_top2`).
+  They stay in one file on purpose: Numba's on-disk cache (``cache=True``) checks only the defining file of a
+  cached kernel, so an edit of a kernel that others call or inline (the distance primitives, the top-2 / top-3
+  updates) recompiles them only when they share its file;
+* :mod:`guidedmatch.strip_index` -- the strip index the guided kernel walks (:class:`StripIndex`,
+  :func:`build_strips`, :func:`first_nonempty`) and :func:`counting_order`;
+* :mod:`guidedmatch.kernel_threads` -- the thread schedule of large calls (:func:`num_threads`,
+  :func:`limit_threads_here`).
+
+The names of both are importable from here too (``kernels.build_strips``, ``kernels.num_threads``, ...).
 """
 from __future__ import annotations
 
 import math
-import os
-import threading
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit, types
 from numba.extending import overload
+
+from .kernel_threads import _chunked_rows, _join_rows
+from .kernel_threads import limit_threads_here, num_threads  # noqa: F401 -- re-exported
+from .strip_index import StripIndex, build_strips, counting_order, first_nonempty  # noqa: F401 -- re-exported
 
 INF = np.float32(np.inf)
 
@@ -235,87 +251,6 @@ def _hamming_col_best(q, t):
 
 
 # --------------------------------------------------------------------------- guided candidates
-class StripIndex(NamedTuple):
-    """Points indexed in strips cut into cells (:func:`build_strips`); a NamedTuple so the Numba kernels take it.
-
-    Strip ``s``, cell ``k`` (strip coordinate ``u`` in ``[u0 + s*width, u0 + (s+1)*width)``, other coordinate in
-    ``[k0 + k*cell, k0 + (k+1)*cell)``) holds rows ``offsets[s*ncells + k] : offsets[s*ncells + k + 1]`` of
-    ``pts_sorted``, which are the input points ``items[...]``.
-    """
-
-    u0: float                # strip origin along the strip axis, px
-    nstrips: int             # number of strips
-    width: float             # strip width, px
-    k0: float                # cell origin along the other axis, px
-    ncells: int              # cells per strip
-    cell: float              # cell height, px
-    offsets: np.ndarray      # (nstrips * ncells + 1,) int64 CSR offsets into items / pts_sorted
-    items: np.ndarray        # (N,) int64 input index of each sorted point
-    pts_sorted: np.ndarray   # (N, 2) float64 the points, strip by strip, cell by cell
-
-
-def build_strips(pts: np.ndarray, width: float, axis: int = 0, cell: float | None = None):
-    """Index points ``(N, 2)`` in strips of ``width`` px along ``axis``, bucketed in cells along the other axis.
-
-    ``axis=0``: vertical strips (x intervals) cut into cells of ``cell`` px in y -- for near-horizontal epipolar
-    lines; ``axis=1``: horizontal strips (y intervals) cut along x -- for near-vertical lines. Points are stored
-    strip by strip, cell by cell, so the points of any run of cells of one strip are contiguous: a band query
-    visits each strip it crosses once, looks up the cells spanned by the band's extent over the strip (two table
-    reads, no search) and scans them, i.e. a superset of the band by about ``1 + (|slope| * width + cell) / band``.
-
-    ``cell`` defaults to ``width / 6``. Both sizes are enlarged when needed so the offset table has at most
-    ``4 N + 4096`` cells (aligned coordinates can spread far out).
-
-    Returns a :class:`StripIndex`. ``build_strips(pts, w, axis=1, cell=w).items`` is also a row-major cell order
-    of the points (the matcher processes queries in it).
-    """
-    pts = np.ascontiguousarray(np.asarray(pts, np.float64).reshape(-1, 2))
-    width = float(width)
-    cell = float(cell) if cell else width / 6.0
-    if len(pts) == 0:
-        return StripIndex(0.0, 1, width, 0.0, 1, cell, np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
-    # one nogil kernel (it runs once per model update of every pair: in a collection's pair threads the NumPy
-    # version's dozen array passes held the GIL, ~1.7 ms of 43 ms a pair at 11k points)
-    u0, ns, width, k0, nk, cell, offsets, items, ps = _strip_layout(pts, int(axis), width, cell)
-    return StripIndex(u0, ns, width, k0, nk, cell, offsets, items, ps)
-
-
-@njit(cache=True, nogil=True)
-def _strip_layout(pts, axis, width, cell):
-    """:func:`build_strips` of ``n >= 1`` points: the table sizes (strips * cells <= ``4 n + 4096``), each point's
-    strip and cell (floor divisions, clipped to the last strip / cell), the stable counting sort by cell."""
-    n = pts.shape[0]
-    other = 1 - axis
-    umin = umax = pts[0, axis]
-    vmin = vmax = pts[0, other]
-    for i in range(1, n):
-        u = pts[i, axis]
-        v = pts[i, other]
-        umin = min(umin, u)
-        umax = max(umax, u)
-        vmin = min(vmin, v)
-        vmax = max(vmax, v)
-    su = umax - umin
-    sv = vmax - vmin
-    budget = 4 * n + 4096  # strips * cells <= budget
-    width = max(width, su / (budget // 4) * (1.0 + 1e-12))  # ns <= budget / 4 + 1, so budget // ns >= 3
-    ns = int(su // width) + 1
-    kmax = budget // ns
-    cell = max(cell, sv / (kmax - 1) * (1.0 + 1e-12))  # nk <= kmax
-    nk = int(sv // cell) + 1
-    key = np.empty(n, np.int64)
-    for i in range(n):
-        sid = min(int((pts[i, axis] - umin) // width), ns - 1)
-        kid = min(int((pts[i, other] - vmin) // cell), nk - 1)
-        key[i] = sid * nk + kid
-    items, offsets = counting_order(key, ns * nk)
-    ps = np.empty((n, 2), np.float64)
-    for r in range(n):
-        ps[r, 0] = pts[items[r], 0]
-        ps[r, 1] = pts[items[r], 1]
-    return umin, ns, width, vmin, nk, cell, offsets, items, ps
-
-
 @njit(cache=True, nogil=True)
 def search_regions_kernel(p, use_so, x1_sorted, gap_lo, gap_hi, x1_lo, x1_hi, x2_sorted, nw, rescue, r_lo, r_hi,
                           use_F, F):  # pragma: no cover - numba
@@ -374,26 +309,6 @@ def search_regions_kernel(p, use_so, x1_sorted, gap_lo, gap_hi, x1_lo, x1_hi, x2
     return keep, lo, hi, lines, rescued
 
 
-@njit(cache=True, nogil=True)
-def counting_order(key, nbins):
-    """Stable counting sort of ``key (N,)`` ints in ``[0, nbins)``: ``(order (N,), offsets (nbins+1,))``.
-
-    ``order`` lists indices by key, ties in index order; bin ``b`` is ``order[offsets[b]:offsets[b+1]]``. O(N + nbins).
-    """
-    n = key.shape[0]
-    offsets = np.zeros(nbins + 1, np.int64)
-    for i in range(n):
-        offsets[key[i] + 1] += 1
-    for b in range(nbins):
-        offsets[b + 1] += offsets[b]
-    pos = offsets[:nbins].copy()
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        order[pos[key[i]]] = i
-        pos[key[i]] += 1
-    return order, offsets
-
-
 @njit(inline="always", cache=True)
 def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1, b2, j2, b3, j3, cnt):
     # all points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the region
@@ -417,20 +332,6 @@ def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1,
             cnt += 1
             b1, j1, b2, j2, b3, j3 = _push3(d, j, b1, j1, b2, j2, b3, j3)
     return b1, j1, b2, j2, b3, j3, cnt
-
-
-def first_nonempty(S):
-    """``first[s]`` = the first strip ``>= s`` of strip index ``S`` (:func:`build_strips`) holding a point
-    (``ns`` when none): ``(ns + 1,) int64``. The candidate kernel jumps over empty strips with it, so its walk
-    costs at most one step per occupied strip, however far a transformed frame spreads the points.
-    (NumPy, O(ns): a reversed running minimum -- one Numba kernel less to compile on a first run.)"""
-    ns, nk = int(S.nstrips), int(S.ncells)
-    starts = S.offsets[0: ns * nk + 1: nk]  # offsets[s * nk] for s = 0 .. ns
-    idx = np.where(starts[1:] > starts[:-1], np.arange(ns, dtype=np.int64), ns)
-    first = np.empty(ns + 1, np.int64)
-    first[ns] = ns
-    first[:ns] = np.minimum.accumulate(idx[::-1])[::-1]
-    return first
 
 
 def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows, fcols, frows):
@@ -582,10 +483,7 @@ def _renamed(fn, name):
 
 _FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 # Every kernel below is compiled single-threaded (``parallel=False``) and releases the GIL (``nogil=True``); large
-# inputs are cut into one contiguous chunk per Numba thread and the chunks run in Python threads
-# (:func:`_chunked`). That is the same schedule as a ``prange`` loop (Numba's default: one equal chunk per
-# thread), with identical results, but compiles 2-3x faster: the parfor lowering of the guided kernel alone took
-# 6 s of a first run's compilation, more than the single-threaded kernel it wraps (2.6 s).
+# inputs run as one contiguous chunk per Numba thread in Python threads (:mod:`guidedmatch.kernel_threads`).
 #: fused GEMM post-processing + the k smallest of a block of rows (the k nearest centroids of the IVF coarse step,
 #: the k nearest candidates of brute force: :func:`topk_gemm`, :func:`topk_block` run it on row chunks in threads)
 topk_gemm_serial = njit(parallel=False, cache=True, nogil=True)(_renamed(_topk_gemm_py, "topk_gemm_serial"))
@@ -597,66 +495,6 @@ _guided_ser = njit(parallel=False, cache=True, nogil=True)(_renamed(_guided_py, 
 #: fewer queries run in the calling thread: for small batches (the progressive phase's 64 queries between BLAS
 #: calls) waking threads costs more than it saves on 2 cores
 PARALLEL_MIN_QUERIES = 2048
-
-_POOL: list = [None, 0, 0]  # [ThreadPoolExecutor, its number of threads, the process id that started it]
-_POOL_LOCK = threading.Lock()
-
-
-_LOCAL = threading.local()  # per-thread cap of num_threads() (limit_threads_here)
-
-
-def limit_threads_here(n: int) -> None:
-    """Cap :func:`num_threads` at ``n`` for the calling thread only (a pool thread matching one pair of a collection
-    while other threads match others: its kernel calls then run in that thread, unchunked)."""
-    _LOCAL.cap = max(1, int(n))
-
-
-def num_threads() -> int:
-    """Threads a large kernel call uses: the calling thread's cap (:func:`limit_threads_here`), else Numba's thread
-    count (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``; read without starting Numba's own thread pool when
-    nothing else started it)."""
-    cap = getattr(_LOCAL, "cap", None)
-    if cap is not None:
-        return cap
-    import numba
-    from numba.np.ufunc import parallel
-
-    if getattr(parallel, "_is_initialized", False):
-        return int(numba.get_num_threads())
-    return int(numba.config.NUMBA_NUM_THREADS)
-
-
-def _chunked(fn, n: int, min_rows: int, threads: int | None = None):
-    """``[fn(a, b) for a, b in chunks]`` over one contiguous chunk ``[a, b)`` of ``range(n)`` per thread, run in a
-    shared thread pool (``fn`` calls a ``nogil`` kernel); in the calling thread when ``n < min_rows``."""
-    k = max(1, min(int(threads or num_threads()), n // max(1, min_rows // 2) if n >= min_rows else 1))
-    if k == 1:
-        return [fn(0, n)]
-    cuts = [n * i // k for i in range(k + 1)]
-    pid = os.getpid()
-    with _POOL_LOCK:  # callers may be concurrent (the collection's in-process pair threads)
-        if _POOL[0] is None or _POOL[1] < k or _POOL[2] != pid:  # a forked child has none of its parent's threads
-            from concurrent.futures import ThreadPoolExecutor
-
-            if _POOL[0] is not None and _POOL[2] == pid:
-                _POOL[0].shutdown(wait=False)  # work already submitted to it still runs
-            _POOL[:] = [ThreadPoolExecutor(k, thread_name_prefix="guidedmatch-kernel"), k, pid]
-        pool = _POOL[0]
-    futures = [pool.submit(fn, a, b) for a, b in zip(cuts[1:-1], cuts[2:])]
-    first = fn(cuts[0], cuts[1])  # the calling thread takes the first chunk
-    return [first] + [f.result() for f in futures]
-
-
-def _join_rows(parts: list):
-    """Tuples of per-row arrays, one per chunk of rows, joined in row order (one chunk: returned as it is)."""
-    if len(parts) == 1:
-        return parts[0]
-    return tuple(np.concatenate(arrays) for arrays in zip(*parts))
-
-
-def _chunked_rows(fn, n: int, min_rows: int, threads: int | None = None):
-    """:func:`_chunked` for a kernel returning a tuple of per-row arrays: the chunks' arrays joined in row order."""
-    return _join_rows(_chunked(fn, n, min_rows, threads))
 
 
 def topk_block(dot, nn2, qn, k):

@@ -92,7 +92,7 @@ def _verified_graph_pycolmap(database_path, min_inliers: int, tried_from: str):
     :func:`~guidedmatch.collection.sinks.done_pairs_in` and :func:`~guidedmatch.collection.sinks.verified_pairs_in`,
     as a sink reads them."""
     from .sinks import done_pairs_in, verified_pairs_in
-    from .sources import _open_colmap
+    from .colmap_source import _open_colmap
 
     db = _open_colmap(Path(database_path))
     try:

@@ -126,7 +126,7 @@ def _rows(desc: np.ndarray) -> np.ndarray:
 def _descriptors(source, name: str) -> np.ndarray:
     """The image's descriptors as L2-normalised float32 rows; from a COLMAP database only the descriptor blob is read
     (8x faster than ``source.load``, which also converts the keypoints)."""
-    from .sources import ColmapSource, _descriptor_rows
+    from .colmap_source import ColmapSource, _descriptor_rows
 
     if isinstance(source, ColmapSource):
         db = source._db()

@@ -127,7 +127,7 @@ class ColmapSink(MatchSink):
 
     def __init__(self, database_path: str | os.PathLike, geometry: str = "ours", *, overwrite: bool = False) -> None:
         from ..validation import check_bool, check_choice
-        from .sources import _open_colmap
+        from .colmap_source import _open_colmap
 
         check_choice("ColmapSink", "geometry", geometry, ("ours", "colmap", "none"))
         check_bool("ColmapSink", "overwrite", overwrite)
@@ -280,7 +280,7 @@ class ColmapSink(MatchSink):
             pycolmap.verify_matches(str(self.path), tmp, options)
         finally:
             os.unlink(tmp)
-            from .sources import _open_colmap
+            from .colmap_source import _open_colmap
 
             if self._db is None and self._lock.held:
                 self._db = _open_colmap(self.path)
@@ -305,7 +305,7 @@ class ColmapSink(MatchSink):
 
         from ..geometry import spread_matches
         from ..validation import check_number
-        from .sources import _descriptor_rows, _is_binary
+        from .colmap_source import _descriptor_rows, _is_binary
 
         check_number("cap_inliers", "max_inliers", max_inliers, lo=1, integer=True)
         check_number("cap_inliers", "grid", grid, lo=1, integer=True)

@@ -54,10 +54,10 @@ draw order, unguided start, verdict), ``models.py`` (step 3: F, alignment, spati
 4. **Guided phase**: between updates, batches are matched in their search regions under the current models; the
    batch size follows the observed acceptance rate so the next update comes after about one batch.
 5. **Final pass**: after the last update, all remaining image-1 features are matched in one vectorized call of the
-   Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the :class:`~guidedmatch.kernels.StripIndex`
-   of the aligned image-2 points): features outside the overlap window ω* are dropped unmatched; each remaining
-   feature's candidates are the image-2 features in its admissible x-range (aligned coordinates) and within
-   ``band_px`` of its epipolar line (:func:`search_regions`).
+   Numba candidate kernel (:func:`~guidedmatch.kernels.guided_top2` over the
+   :class:`~guidedmatch.strip_index.StripIndex` of the aligned image-2 points): features outside the overlap window
+   ω* are dropped unmatched; each remaining feature's candidates are the image-2 features in its admissible x-range
+   (aligned coordinates) and within ``band_px`` of its epipolar line (:func:`search_regions`).
 6. **Re-check** (beyond the paper, ``recheck``): matches accepted before the final models are tested against the
    final x-range and band and dropped when outside (the fix the paper suggests in §IV-C). When the verdict is a
    homography (planar scene or pure rotation, ``planar_recheck``) and the final matches still look planar

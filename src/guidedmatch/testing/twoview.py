@@ -160,6 +160,17 @@ def make_scene(X, K1, K2, R, t, size1, size2, noise: float = 0.0, rng=None, keep
                         tuple(size1), tuple(size2), x1, x2, x1n, x2n, float(noise), F)
 
 
+def _frustum_points(rng, n_points: int, size, f: float, depth=(4.0, 8.0)) -> tuple[np.ndarray, np.ndarray]:
+    """``(K, X)``: camera 1's intrinsics (focal ``f``, centred principal point) and ``n_points`` 3-D points in its
+    frustum at a depth uniform in ``depth``, each projecting uniformly into the image (drawn as depth, u, v)."""
+    w, h = size
+    z = rng.uniform(*depth, n_points)
+    u = rng.uniform(0, w - 1, n_points)
+    v = rng.uniform(0, h - 1, n_points)
+    K = intrinsics_matrix(f, size)
+    return K, np.stack([(u - K[0, 2]) / f * z, (v - K[1, 2]) / f * z, z], 1)
+
+
 def _random_unit(rng) -> np.ndarray:
     v = rng.normal(size=3)
     return v / np.linalg.norm(v)
@@ -212,12 +223,7 @@ def general_pair(
     rotation of at most ``max_angle_deg`` about a random axis (optical axes do not intersect in
     general); optional extra roll ``roll_deg`` of camera 2 about its optical axis."""
     rng = np.random.default_rng(rng)
-    w, h = size
-    z = rng.uniform(*depth, n_points)
-    u = rng.uniform(0, w - 1, n_points)
-    v = rng.uniform(0, h - 1, n_points)
-    K1 = intrinsics_matrix(f1, size)
-    X = np.stack([(u - K1[0, 2]) / f1 * z, (v - K1[1, 2]) / f1 * z, z], 1)
+    K1, X = _frustum_points(rng, n_points, size, f1, depth)
     d = rng.normal(size=3) * np.array([1.0, 0.5, 0.3])
     t = baseline * d / np.linalg.norm(d)
     R = rotation_about(_random_unit(rng), np.radians(rng.uniform(0, max_angle_deg)))
@@ -231,12 +237,7 @@ def roll_pair(rng=None, roll_deg: float = 30.0, n_points: int = 200, size=(640, 
     """Camera 2 = camera 1 rolled by ``roll_deg`` about the optical axis, centre at ``baseline``
     (``(0, 0, 0)`` = pure roll, no epipolar geometry; a sideways baseline gives a valid ``F``)."""
     rng = np.random.default_rng(rng)
-    w, h = size
-    z = rng.uniform(4.0, 8.0, n_points)
-    u = rng.uniform(0, w - 1, n_points)
-    v = rng.uniform(0, h - 1, n_points)
-    K = intrinsics_matrix(f, size)
-    X = np.stack([(u - K[0, 2]) / f * z, (v - K[1, 2]) / f * z, z], 1)
+    K, X = _frustum_points(rng, n_points, size, f)
     return make_scene(X, K, K, rot_z(np.radians(roll_deg)), np.asarray(baseline, float), size, size,
                       noise, rng, keep_in_image=False)
 
@@ -246,11 +247,6 @@ def forward_pair(rng=None, n_points: int = 200, size=(640, 480), f: float = 800.
     """Pure translation along the optical axis (camera 2 = camera 1 moved forward by ``step``): the
     epipoles are at the principal points, the degenerate case of Bougnoux's formula."""
     rng = np.random.default_rng(rng)
-    w, h = size
-    z = rng.uniform(4.0, 8.0, n_points)
-    u = rng.uniform(0, w - 1, n_points)
-    v = rng.uniform(0, h - 1, n_points)
-    K = intrinsics_matrix(f, size)
-    X = np.stack([(u - K[0, 2]) / f * z, (v - K[1, 2]) / f * z, z], 1)
+    K, X = _frustum_points(rng, n_points, size, f)
     return make_scene(X, K, K, np.eye(3), np.array([0.0, 0.0, step]), size, size, noise, rng,
                       keep_in_image=False)
