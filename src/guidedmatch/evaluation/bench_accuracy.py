@@ -151,7 +151,7 @@ def warm_up(cache: Path, mdir: Path) -> None:
     _WARM.add(True)
 
 
-OURS_FLAGS = ("second_look",)   # ours@...;second_look: `guidedmatch colmap --second-look`, not a matcher setting
+OURS_FLAGS = ("second_look", "no_second_look")   # ours@...;no_second_look: `guidedmatch colmap --no-second-look`, not a matcher setting
 
 
 def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
