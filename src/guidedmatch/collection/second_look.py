@@ -24,9 +24,9 @@ keypoints are drawn first, then its *tracked* ones (inliers of any verified pair
 image 2 with the ratio test and the verdict decides on the pair's own correspondences -- the chains choose the pairs
 and the order, never the evidence. (Seeding the matcher with the chains as its first *evidence* was measured and
 rejected: its guided matches on wide baselines were 10 % wrong and the poses got worse, 0.230 -> 0.247 deg on
-buddha.) With the prior the first pass's budget is enough: on 60 of buddha's candidates the prior at 0.02 verified
-51 (39 with >= 64 inliers, 5,481 inliers) in 2.4 s, the paper's order at 0.1 -- the earlier rule -- 52 (30, 4,318)
-in 6.4 s, at 0.02 22 (0). Pairs the second look verifies can tie new pairs together, so it runs in rounds until a
+buddha.) With the prior the first pass's budget is enough: on 60 of buddha's candidates (``tools/prior_ab.py``) the
+prior at 0.02 verified 51 (33 with >= 64 inliers, 4,758 inliers) in 2.6 s, the paper's order at 0.1 -- the earlier
+rule -- 52 (30, 4,318) in 5.5 s, at 0.02 22 (0). Pairs the second look verifies can tie new pairs together, so it runs in rounds until a
 round verifies nothing new, no candidate is left or ``max_rounds`` ran (reported).
 
 Resumable like the verified expansion: each round's pair list is saved (atomically) in
