@@ -87,7 +87,7 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
                     tokens[anchor] = client.submit(_anchor_token, source, spec, name, pure=False,
                                                    key=f"guidedmatch-anchor-{spec.run_id}-{seq}")
                 deps = (tokens[anchor],)
-            mine = {tuple(p): firsts[tuple(p)] for p in task if tuple(p) in firsts} if firsts else None
+            mine = {(a, b): firsts[(a, b)] for a, b in task if (a, b) in firsts} if firsts else None
             fut = client.submit(run_task, source, spec, task, *deps, pure=False, firsts=mine,
                                 key=f"guidedmatch-pairs-{spec.run_id}-{seq}")
             inflight[fut] = (anchor, task, seq if not inflight else None)

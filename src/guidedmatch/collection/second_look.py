@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..validation import check_number, config_from
+from ..validation import check_bool, check_number, config_from
 
 __all__ = ["SecondLookConfig", "chained_correspondences", "chain_support", "priors", "second_look",
            "tracked_keypoints"]
@@ -71,8 +71,7 @@ class SecondLookConfig:
         own = "SecondLookConfig"
         check_number(own, "min_chained", self.min_chained, lo=1, integer=True)
         check_number(own, "max_unguided", self.max_unguided, lo=0, hi=1, lo_open=True, allow_none=True)
-        if not isinstance(self.prior, bool):
-            raise ConfigError(f"{own}.prior must be True or False, got {self.prior!r}")
+        check_bool(own, "prior", self.prior)
         check_number(own, "weak_below", self.weak_below, lo=0, integer=True)
         check_number(own, "max_rounds", self.max_rounds, lo=0, integer=True)
         check_number(own, "max_pairs_per_round", self.max_pairs_per_round, lo=1, integer=True)
@@ -130,11 +129,11 @@ def _neighbours(inliers: dict) -> dict:
     return neighbours
 
 
-def tracked_keypoints(inliers: dict, num_keypoints: dict) -> dict:
+def tracked_keypoints(inliers: dict) -> dict:
     """``{image: sorted keypoint indices}`` of the keypoints that are an inlier of at least one verified pair.
 
     >>> inl = {("a", "b"): np.array([[0, 5], [1, 6]]), ("c", "b"): np.array([[9, 5]])}
-    >>> {k: v.tolist() for k, v in sorted(tracked_keypoints(inl, {"a": 2, "b": 8, "c": 10}).items())}
+    >>> {k: v.tolist() for k, v in sorted(tracked_keypoints(inl).items())}
     {'a': [0, 1], 'b': [5, 6], 'c': [9]}
     """
     parts: dict = {}
@@ -158,7 +157,7 @@ def priors(pairs, inliers: dict, num_keypoints: dict) -> dict:
     ([[0], [0, 1]], [[9], [8, 9]])
     """
     neighbours = _neighbours(inliers)
-    tracked = tracked_keypoints(inliers, num_keypoints)
+    tracked = tracked_keypoints(inliers)
     none = np.zeros(0, np.int64)
     out = {}
     for a, c in pairs:
@@ -309,8 +308,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         t1 = time.perf_counter()
         first = None
         if cfg.prior:  # from the graph without this round's own pairs: a replay after a crash finds the same priors
-            mine = {frozenset(p) for p in pairs}
-            first = priors(pairs, {p: m for p, m in inliers.items() if frozenset(p) not in mine}, nkp)
+            own = {frozenset(p) for p in pairs}
+            first = priors(pairs, {p: m for p, m in inliers.items() if frozenset(p) not in own}, nkp)
         rep = match_collection(source, pairs, _Again(sink, pairs), cconf, client=client, first=first)
         tried, inliers, nkp = _read_inliers(sink)
         after = {frozenset(p): len(m) for p, m in inliers.items()}

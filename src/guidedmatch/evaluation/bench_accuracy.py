@@ -187,12 +187,11 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         copy_database(cache / "features.db", db)
         warm_up(cache, mdir)
         items = [kv for kv in method[5:].split(";") if kv]   # ours@a=1;b=2: several settings
-        flags = [f"--{kv.replace('_', '-')}" for kv in items if kv in OURS_FLAGS]   # ours@second_look: a CLI flag
-        cfg = [a for kv in items if kv not in OURS_FLAGS for a in ("--config", kv)] + flags
+        # each setting as CLI words: ours@second_look is a flag (--second-look), anything else a matcher --config
+        words = [[f"--{kv.replace('_', '-')}"] if kv in OURS_FLAGS else ["--config", kv] for kv in items]
         t = _timed_process([sys.executable, "-c", OURS_MATCH_SCRIPT, "colmap", str(db), "--no-progress", "--log", "none",
-                            *cfg], mdir / "match.log")
-        rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(
-            f"--{kv.replace('_', '-')}" if kv in OURS_FLAGS else f"--config {kv}" for kv in items)}
+                            *(w for ws in words for w in ws)], mdir / "match.log")
+        rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(" ".join(ws) for ws in words)}
     elif method in ("ours+rescue", "ours+rescue+cap"):
         base = match("ours", cache, threads)
         copy_database(cache / "ours" / "database.db", db)
