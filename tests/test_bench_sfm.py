@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from guidedmatch.evaluation import bench_sfm
 
@@ -169,18 +170,22 @@ def test_end_to_end_repeats_alternate_the_order_and_report_medians(monkeypatch, 
     calls = []
     totals = {"ours": iter([30.0, 36.0, 33.0]), "colmap": iter([34.0, 32.0, 33.5])}
 
+    seeds = []
+
     def fake(who):
         def run(image_dir, gt, work, threads, seed):
             calls.append(who)
+            seeds.append((who, seed))
             t = next(totals[who])
             return dict(pipeline=who, total_s=t, extraction_s=t - 5, matching_s=1.0 if who == "ours" else 3.0,
                         mapping_s=4.0, verified_inliers=7, registered=8, points3D=int(t * 100),
-                        median_pose_error_deg=0.2, auc={"1": 0.7})
+                        median_pose_error_deg=0.1 * seed + (0.2 if who == "ours" else 0.3),
+                        auc={"1": 0.7 - 0.1 * seed})
         return run
 
     monkeypatch.setattr(bench_sfm, "_e2e_ours", fake("ours"))
     monkeypatch.setattr(bench_sfm, "_e2e_colmap", fake("colmap"))
-    rows = bench_sfm.end_to_end(tmp_path, {}, tmp_path, 2, 0, repeats=3)
+    rows = bench_sfm.end_to_end(tmp_path, {}, tmp_path, 2, 5, repeats=3)
     assert calls == ["ours", "colmap", "colmap", "ours", "ours", "colmap"]
     ours, colmap = rows
     assert ours["total_s"] == 33.0 and colmap["total_s"] == 33.5
@@ -188,6 +193,10 @@ def test_end_to_end_repeats_alternate_the_order_and_report_medians(monkeypatch, 
     assert [r["total_s"] for r in ours["runs"]] == [30.0, 36.0, 33.0]
     assert ours["extraction_s"] == 28.0 and colmap["matching_s"] == 3.0
     assert "(30.0-36.0, 3 runs)" in bench_sfm.e2e_table(rows)
+    # run r maps with seed 5 + r in both pipelines; the pose columns are the medians over the runs
+    assert sorted(seeds) == sorted((w, 5 + r) for r in range(3) for w in ("ours", "colmap"))
+    assert [r["seed"] for r in ours["runs"]] == [5, 6, 7]
+    assert ours["median_pose_error_deg"] == pytest.approx(0.2 + 0.6) and colmap["auc"]["1"] == pytest.approx(0.1)
 
 
 def test_end_to_end_runs_both_pipelines_as_fresh_processes(five_views, tmp_path):

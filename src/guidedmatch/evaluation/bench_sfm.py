@@ -329,24 +329,44 @@ def end_to_end(image_dir: Path, gt: dict, work: Path, threads: int, seed: int, r
     time, the runs themselves (``runs``: the stage times of each) and the reconstruction of the median-total run.
     COLMAP's mapper is multi-threaded and not deterministic: on one database its time varied 6.0-8.5 s (ours) and
     4.5-4.7 s (COLMAP's) across runs, which one run cannot show.
+
+    Run ``r`` maps with the mapper seed ``seed + r`` in both pipelines (the accuracy benchmark's three mapper seeds):
+    with repeats the pose columns are the medians over the runs (median pose error, AUC at each threshold), the
+    way :mod:`guidedmatch.evaluation.bench_accuracy` reports them, and each run's own values are in ``runs``.
     """
     runs: dict[str, list] = {"ours": [], "colmap": []}
     for r in range(max(1, int(repeats))):
         for who in (("ours", "colmap") if r % 2 == 0 else ("colmap", "ours")):
-            _say(f"[e2e] run {r + 1}/{repeats}: {'guidedmatch sfm' if who == 'ours' else 'pycolmap pipeline'}")
+            _say(f"[e2e] run {r + 1}/{repeats}: {'guidedmatch sfm' if who == 'ours' else 'pycolmap pipeline'}"
+                 f" (mapper seed {seed + r})")
             fn = _e2e_ours if who == "ours" else _e2e_colmap
-            runs[who].append(fn(image_dir, gt, work, threads, seed))
-    rows = []
-    for who in ("ours", "colmap"):
-        rs = runs[who]
-        order = sorted(range(len(rs)), key=lambda k: rs[k]["total_s"])
-        row = dict(rs[order[(len(rs) - 1) // 2]])  # the (lower) median run: its model's numbers
-        if len(rs) > 1:
-            for k in E2E_STAGES:
-                row[k] = float(np.median([x[k] for x in rs]))
-            row["runs"] = [{k: x[k] for k in (*E2E_STAGES, "verified_inliers", "points3D")} for x in rs]
-        rows.append(row)
-    return rows
+            runs[who].append(dict(fn(image_dir, gt, work, threads, seed + r), seed=seed + r))
+    return [_e2e_row(runs[who]) for who in ("ours", "colmap")]
+
+
+def _e2e_row(rs: list[dict]) -> dict:
+    """One pipeline's row from its runs: the (lower) median-total run's model numbers, and with several runs the
+    median of every stage time and of the pose accuracy (median error, AUC per threshold) over the runs.
+
+    >>> rs = [dict(total_s=t, extraction_s=1.0, matching_s=1.0, mapping_s=1.0, verified_inliers=9, points3D=5,
+    ...            median_pose_error_deg=e, auc={"1": a}, seed=k) for k, (t, e, a) in
+    ...       enumerate([(3.0, 0.2, 0.7), (2.0, 0.4, 0.5), (4.0, 0.3, 0.6)])]
+    >>> row = _e2e_row(rs)
+    >>> row["total_s"], row["median_pose_error_deg"], row["auc"], [r["seed"] for r in row["runs"]]
+    (3.0, 0.3, {'1': 0.6}, [0, 1, 2])
+    """
+    order = sorted(range(len(rs)), key=lambda k: rs[k]["total_s"])
+    row = dict(rs[order[(len(rs) - 1) // 2]])  # the (lower) median run: its model's numbers
+    if len(rs) > 1:
+        for k in E2E_STAGES:
+            row[k] = float(np.median([x[k] for x in rs]))
+        errs = [x["median_pose_error_deg"] for x in rs if x.get("median_pose_error_deg") is not None]
+        row["median_pose_error_deg"] = float(np.median(errs)) if errs else None
+        aucs = [x["auc"] for x in rs if x.get("auc")]
+        row["auc"] = {t: float(np.median([a[t] for a in aucs])) for t in aucs[0]} if aucs else None
+        row["runs"] = [{k: x.get(k) for k in (*E2E_STAGES, "verified_inliers", "points3D", "registered", "seed",
+                                               "median_pose_error_deg", "auc")} for x in rs]
+    return row
 
 
 def e2e_table(rows: list[dict]) -> str:
@@ -546,7 +566,8 @@ def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None
           f"{results['meta'].get('load_average') or float('nan'):.1f} when this run started (2 cores); rows kept from earlier runs "
           "(--merge) may come from a loaded machine: compare times within one run; inlier counts and poses are exact.", "", markdown_table(rows),
           *(["**End to end** (8192 features, defaults of `guidedmatch sfm`" + (
-              f"; median of {len(results['end_to_end'][0]['runs'])} runs each, in alternating order)"
+              f"; median of {len(results['end_to_end'][0]['runs'])} runs each, in alternating order, run r with "
+              f"mapper seed {seed} + r; poses: the median over the runs)"
               if results["end_to_end"] and results["end_to_end"][0].get("runs") else ")"), "", e2e_table(results["end_to_end"]), ""]
             if results["end_to_end"] else []),
           "![time vs inliers](sfm_time_vs_inliers.png)", ""]
