@@ -11,7 +11,8 @@ from hypothesis import given, settings, strategies as st
 
 from guidedmatch.cli import main as cli_main
 from guidedmatch.collection.expansion import read_verified_graph
-from guidedmatch.collection.second_look import SecondLookConfig, chain_support, chained_correspondences, second_look
+from guidedmatch.collection.second_look import (SecondLookConfig, chain_support, chained_correspondences, describe,
+                                                 second_look)
 from guidedmatch.errors import ConfigError
 
 CFG = dict(progress=False, workers=0, threads=1)
@@ -67,7 +68,7 @@ def test_chained_correspondences_equal_the_slow_reference(seed, n, density):
 
 def test_settings_are_validated():
     for bad in (dict(min_chained=0), dict(max_unguided=0.0), dict(max_unguided=1.5), dict(max_rounds=-1),
-                dict(max_pairs_per_round=0)):
+                dict(max_pairs_per_round=0), dict(orphan_pairs=-1), dict(orphan_unguided=0.0), dict(orphan_unguided=2.0)):
         with pytest.raises(ConfigError):
             SecondLookConfig(**bad)
 
@@ -159,7 +160,7 @@ def test_rejected_pairs_tied_by_chains_are_matched_again_and_verified(matched_db
     rec = _look(db)
     tried, verified = read_verified_graph(db)
     assert all(frozenset(p) in verified for p in pairs)
-    r1 = rec["rounds"][0]
+    r1 = _chain_rounds(rec)[0]
     assert r1["pairs"] == r1["candidates"] >= 2 and rec["verified"] >= 2 and rec["stopped"]
     # the pairs matched again with a longer start: a strong pair is decided at its first check, so its rows come back
     assert _rows(db) == ref
@@ -179,21 +180,27 @@ def test_weak_pairs_are_matched_again_and_get_their_inliers_back(matched_db, tmp
     _weaken(db2, pair)
     assert _rows(db2) != ref
     rec = _look(db2, weak_below=21, min_chained=10**6)   # only the weakened pair has fewer than 21 inliers
-    assert rec["rounds"][0]["pairs"] == 1 and rec["verified"] == 0 and rec["inliers_gained"] > 0
+    assert _chain_rounds(rec)[0]["pairs"] == 1 and rec["verified"] == 0 and rec["inliers_gained"] > 0
     assert _rows(db2) == ref  # matched again, the pair is what the first pass wrote
 
 
-def test_a_crash_in_a_round_then_a_rerun_gives_the_uninterrupted_database(matched_db, tmp_path, crashing_sink):
+@pytest.mark.parametrize("crash_at, weak_below", [(1, 0), (7, 0), (7, 40)])
+def test_a_crash_in_a_round_then_a_rerun_gives_the_uninterrupted_database(matched_db, tmp_path, crashing_sink,
+                                                                          crash_at, weak_below):
+    """Killed in the orphan round (the 1st write) or in a chain round (the 7th: after the orphan round's 5 pairs),
+    with and without weak pairs in the rounds (their inliers before the round rebuild the state's key)."""
     ref = tmp_path / "ref.db"
     shutil.copyfile(matched_db, ref)
     pairs = _strongest(ref, 3)
     _reject(ref, pairs)
+    _weaken(ref, _strongest(ref, 1)[0])
     db = tmp_path / "db.db"
     shutil.copyfile(ref, db)
-    _look(ref)
+    first = _look(ref, weak_below=weak_below)
+    assert [r["kind"] for r in first["rounds"]][:2] == ["orphans", "chains"]
     with pytest.raises(KeyboardInterrupt):
-        _look(db, sink_wrapper=crashing_sink(1))
-    rec = _look(db)
+        _look(db, sink_wrapper=crashing_sink(crash_at), weak_below=weak_below)
+    rec = _look(db, weak_below=weak_below)
     assert _rows(db) == _rows(ref) and rec["verified"] >= 3
 
 
@@ -202,10 +209,63 @@ def test_min_chained_above_every_chain_matches_nothing_and_max_rounds_zero_is_of
     shutil.copyfile(matched_db, db)
     _reject(db, _strongest(db, 1))
     before = _rows(db)
-    rec = _look(db, min_chained=10**6)
+    rec = _look(db, min_chained=10**6, orphan_pairs=0)
     assert rec["rounds"] == [] and rec["looked"] == 0 and "no rejected pair" in rec["stopped"] and _rows(db) == before
     rec0 = _look(db, max_rounds=0, min_chained=16)
     assert rec0["rounds"] == [] and rec0["stopped"] == "max_rounds=0 reached" and _rows(db) == before
+
+
+def _chain_rounds(rec):
+    return [r for r in rec["rounds"] if r["kind"] == "chains"]
+
+
+def _pairs_of(db, name):
+    tried, _ = read_verified_graph(db)
+    return sorted(tuple(sorted(p)) for p in tried if name in p)
+
+
+def test_an_image_without_a_verified_pair_is_matched_against_its_most_similar_images(matched_db, tmp_path):
+    """An orphan (every pair of a view rejected) gets a verified pair back in the orphan round, before any chain
+    round (chains off here); the view looking away stays without one: no false edge at the longer start."""
+    db = tmp_path / "db.db"
+    shutil.copyfile(matched_db, db)
+    tried, verified = read_verified_graph(db)
+    names = sorted({n for p in tried for n in p})
+    iso = [n for n in names if not any(n in p for p in verified)]
+    assert len(iso) == 1
+    orphan = next(n for n in names if n not in iso)
+    _reject(db, [tuple(p) for p in _pairs_of(db, orphan)])
+    _, verified = read_verified_graph(db)
+    assert not any(orphan in p for p in verified)
+    rec = _look(db, min_chained=10**6, orphan_pairs=3)
+    o = rec["orphans"]
+    assert rec["rounds"][0]["kind"] == "orphans" and rec["rounds"][0]["pairs"] == o["pairs"] <= 2 * 3
+    assert o["before"] == 2 and o["after"] == 1 and o["verified"] >= 1 and o["max_unguided"] == 0.1
+    _, verified = read_verified_graph(db)
+    assert any(orphan in p for p in verified) and not any(iso[0] in p for p in verified)
+    assert "images without a verified pair: 2 -> 1" in describe(rec)
+    # off: nothing is matched
+    db2 = tmp_path / "db2.db"
+    shutil.copyfile(matched_db, db2)
+    _reject(db2, [tuple(p) for p in _pairs_of(db2, orphan)])
+    rec2 = _look(db2, min_chained=10**6, orphan_pairs=0)
+    assert rec2["rounds"] == [] and rec2["orphans"]["pairs"] == 0
+
+
+def test_most_similar_ranks_like_the_shortlist(matched_db):
+    """most_similar's k images of a view are that view's partners in the retrieval shortlist with the same k."""
+    from guidedmatch.collection.retrieval import most_similar, retrieval_pairs
+    from guidedmatch.collection.sources import ColmapSource
+
+    src = ColmapSource(matched_db)
+    conf = dict(coarse=16, fine=16, sample=5000, progress=False)
+    names = src.names()
+    sim = most_similar(src, names, 2, config=conf, cache=None)
+    pairs = retrieval_pairs(src, None, dict(conf, k=2), cache=None).pairs
+    src.close()
+    for n in names:
+        assert len(sim[n]) == 2 and n not in sim[n]
+        assert all(tuple(sorted((n, m))) in {tuple(sorted(p)) for p in pairs} for m in sim[n])
 
 
 def test_the_second_look_needs_our_geometries(matched_db, tmp_path):

@@ -213,9 +213,9 @@ def cmd_colmap(args) -> int:
     if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:
-        print(f"second look: {look['looked']} weak or rejected pairs matched again with a prior: "
-              f"{look['verified']} newly verified, {look['inliers_gained']:+,} inliers ({look['time_s']:.2f} s, "
-              f"{len(look['rounds'])} round(s); stopped: {look['stopped']})")
+        from ..collection.second_look import describe
+
+        print(f"second look: {describe(look)}")
     if done["verified"] is not None:
         print(f"verified   : {done['verified']} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
     if (cap := done["inlier_cap"]) is not None:

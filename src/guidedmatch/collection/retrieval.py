@@ -37,7 +37,7 @@ from ..errors import ConfigError, InputError
 from ..validation import check_bool, check_number, config_from
 
 __all__ = ["RetrievalConfig", "RetrievalResult", "retrieval_pairs", "parse_retrieval_spec", "bag_of_words",
-           "shortlist", "retrieval_cache_path"]
+           "shortlist", "retrieval_cache_path", "most_similar"]
 
 DEFAULT_K = 20  # images kept per image by ``retrieval`` without ``:K`` (chosen on the 220-image collection)
 
@@ -364,40 +364,86 @@ def _retrieval_pairs(source, names, cfg: RetrievalConfig, cache) -> RetrievalRes
         idx = cached["pairs"]
         info.update(reused="all")
     else:
-        if cached is not None:
-            import scipy.sparse as sp
-
-            coarse, fine = cached["coarse"], cached["fine"]
-            bow = sp.csr_matrix((cached["bow_data"], cached["bow_indices"], cached["bow_indptr"]),
-                                shape=tuple(cached["bow_shape"]))
-            info.update(reused="vocabulary")
-        else:
-            t = time.perf_counter()
-            coarse, fine = train_vocabulary(source, names, cfg)
-            info["vocabulary_s"] = time.perf_counter() - t
-            t = time.perf_counter()
-            counts = []
-            bar = _bar(len(names), "retrieval: visual words", cfg.progress)
-            for n in names:
-                w = assign_words(_descriptors(source, n), coarse, fine)
-                u, c = np.unique(w, return_counts=True)
-                counts.append((u, c))
-                if bar is not None:
-                    bar.update()
-            if bar is not None:
-                bar.close()
-            bow = bag_of_words(counts, cfg.words)
-            info["assign_s"] = time.perf_counter() - t
-            info.update(reused="none")
+        coarse, fine, bow = _bag(source, names, cfg, cached, info)
         t = time.perf_counter()
         idx = shortlist(bow, cfg.k, cfg.block, cfg.hub_k)
         info["shortlist_s"] = time.perf_counter() - t
-        if path is not None:
-            from ..features import atomic_savez
-
-            atomic_savez(path, key=np.array(key), k=np.array(cfg.k), hub_k=np.array(cfg.hub_k), coarse=coarse, fine=fine, pairs=idx,
-                         bow_data=bow.data, bow_indices=bow.indices, bow_indptr=bow.indptr,
-                         bow_shape=np.array(bow.shape), names=np.array(names, dtype=str))
+        _save(path, key, cfg.k, cfg.hub_k, coarse, fine, idx, bow, names)
     pairs = tuple((names[int(i)], names[int(j)]) for i, j in idx)
     info.update(pairs=len(pairs), time_s=time.perf_counter() - t0)
     return RetrievalResult(pairs, info)
+
+
+def _bag(source, names, cfg: RetrievalConfig, cached: dict | None, info: dict):
+    """``(coarse, fine, bow)``: from the cache when it holds them (``info["reused"] = "vocabulary"``), else the
+    vocabulary trained and every image's words assigned (``"none"``; the stage times into ``info``)."""
+    if cached is not None:
+        import scipy.sparse as sp
+
+        bow = sp.csr_matrix((cached["bow_data"], cached["bow_indices"], cached["bow_indptr"]),
+                            shape=tuple(cached["bow_shape"]))
+        info.update(reused="vocabulary")
+        return cached["coarse"], cached["fine"], bow
+    t = time.perf_counter()
+    coarse, fine = train_vocabulary(source, names, cfg)
+    info["vocabulary_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    counts = []
+    bar = _bar(len(names), "retrieval: visual words", cfg.progress)
+    for n in names:
+        w = assign_words(_descriptors(source, n), coarse, fine)
+        u, c = np.unique(w, return_counts=True)
+        counts.append((u, c))
+        if bar is not None:
+            bar.update()
+    if bar is not None:
+        bar.close()
+    bow = bag_of_words(counts, cfg.words)
+    info["assign_s"] = time.perf_counter() - t
+    info.update(reused="none")
+    return coarse, fine, bow
+
+
+def _save(path: Path | None, key: str, k: int, hub_k: int, coarse, fine, idx, bow, names) -> None:
+    if path is not None:
+        from ..features import atomic_savez
+
+        atomic_savez(path, key=np.array(key), k=np.array(k), hub_k=np.array(hub_k), coarse=coarse, fine=fine,
+                     pairs=idx, bow_data=bow.data, bow_indices=bow.indices, bow_indptr=bow.indptr,
+                     bow_shape=np.array(bow.shape), names=np.array(names, dtype=str))
+
+
+def most_similar(source, queries, k: int, names=None, config: RetrievalConfig | dict | None = None, *,
+                 cache: str | os.PathLike | None | bool = True) -> dict:
+    """``{query: [the k images most similar to it, best first]}`` for the images ``queries`` among ``names``
+    (default ``source.names()``), ranked as :func:`shortlist` ranks them (CSLS with ``hub_k``, ties to the smaller
+    index). The bag of words comes from the retrieval cache when its key matches (the ``retrieval`` pairs of the
+    same collection computed it), else it is computed -- and saved there, so a later ``retrieval`` run reuses it.
+    Used by the second look's orphan round (:mod:`guidedmatch.collection.second_look`).
+    """
+    from threadpoolctl import threadpool_limits
+
+    cfg = config_from(RetrievalConfig, config)
+    names = list(source.names() if names is None else names)
+    index = {n: i for i, n in enumerate(names)}
+    unknown = [q for q in queries if q not in index]
+    if unknown:
+        raise InputError(f"most_similar: {len(unknown)} query image(s) not among the names, e.g. {unknown[0]!r}")
+    path = retrieval_cache_path(source) if cache is True else (Path(cache) if cache else None)
+    key = _key(source, names, cfg)
+    cached = _load_cache(path, key)
+    with threadpool_limits(1):
+        coarse, fine, bow = _bag(source, names, cfg, cached, {})
+        if cached is None:  # no shortlist yet: k = 0 (a retrieval run computes its own and keeps the vocabulary)
+            _save(path, key, 0, -1, coarse, fine, np.zeros((0, 2), np.int64), bow, names)
+        r = hub_scores(bow, cfg.hub_k, cfg.block) if cfg.hub_k > 0 else np.zeros(len(names))
+        out = {}
+        for q in queries:
+            i = index[q]
+            sim = np.asarray((bow[i] @ bow.T).todense(), np.float64).reshape(-1)
+            sim[i] = -np.inf
+            if cfg.hub_k > 0:
+                sim = 2.0 * sim - r[i] - r
+            order = np.argsort(-sim, kind="stable")[:max(0, min(int(k), len(names) - 1))]
+            out[q] = [names[int(j)] for j in order]
+    return out

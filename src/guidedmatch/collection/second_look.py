@@ -29,6 +29,16 @@ prior at 0.02 verified 51 (33 with >= 64 inliers, 4,758 inliers) in 2.6 s, the p
 rule -- 52 (30, 4,318) in 5.5 s, at 0.02 22 (0). Pairs the second look verifies can tie new pairs together, so it runs in rounds until a
 round verifies nothing new, no candidate is left or ``max_rounds`` ran (reported).
 
+**Orphans first.** An image with no verified pair at all has no chain and no tracked keypoint: nothing above can
+reach it. Before the chain rounds, each such image is matched against its ``orphan_pairs`` most similar images by
+the collection's visual words (:func:`guidedmatch.collection.retrieval.most_similar`; the retrieval stage's cache when
+there is one), the orphan as image 1 and with the longer start ``orphan_unguided`` (0.1): a few pairs per orphan,
+whatever the collection's size. Its verified pairs then give the chain rounds their chains. In ``guidedmatch sfm`` on
+the 220-image collection (OpenCV SIFT), buddha's 00065 (2,124 features, grayscale) lost all 20 of its pairs at the
+first pass's budget and stayed out of the model; against its 5 most similar images at 0.1 two verify (00039 with 29
+inliers, 00049 with 61). The distractor photos of that collection are orphans too: each costs ``orphan_pairs`` longer
+rejections, and the verdict rejects them (measured: no across-scene pair verified).
+
 Resumable like the verified expansion: each round's pair list is saved (atomically) in
 ``<database>.second_look.json`` before it is matched, with a key of the settings and of the graph it started from
 (the tried pairs, and the verified pairs outside the saved rounds); the priors of a round come from the verified
@@ -51,7 +61,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..validation import check_bool, check_number, config_from
 
-__all__ = ["SecondLookConfig", "chained_correspondences", "chain_support", "priors", "second_look",
+__all__ = ["SecondLookConfig", "chained_correspondences", "chain_support", "describe", "priors", "second_look",
            "tracked_keypoints"]
 
 
@@ -66,6 +76,9 @@ class SecondLookConfig:
     weak_below: int = 64           # verified pairs with fewer inliers (weak: matched unguided only) are looked at too
     max_rounds: int = 3            # rounds at most (0: no second look)
     max_pairs_per_round: int = 50_000  # candidates matched per round at most (most chained first)
+    orphan_pairs: int = 5          # an image with no verified pair: its most similar images (retrieval words) matched
+                                   # again first, the orphan as image 1 (0: off); buddha 00065 at OpenCV SIFT: 2 of 5
+    orphan_unguided: float = 0.1   # those pairs' unguided budget (fraction of N1*N2): a chain-less pair has no prior
 
     def __post_init__(self) -> None:
         own = "SecondLookConfig"
@@ -75,6 +88,8 @@ class SecondLookConfig:
         check_number(own, "weak_below", self.weak_below, lo=0, integer=True)
         check_number(own, "max_rounds", self.max_rounds, lo=0, integer=True)
         check_number(own, "max_pairs_per_round", self.max_pairs_per_round, lo=1, integer=True)
+        check_number(own, "orphan_pairs", self.orphan_pairs, lo=0, integer=True)
+        check_number(own, "orphan_unguided", self.orphan_unguided, lo=0, hi=1, lo_open=True)
 
 
 # ------------------------------------------------------------------------------------------------ the chains
@@ -221,12 +236,19 @@ def _candidates(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondLo
 
 
 def _graph_key(tried: set, inliers: dict, rounds: list, cfg: SecondLookConfig, matcher) -> str:
-    """The state's key: settings, and the graph before the second look (its own rounds' pairs left out, so a
-    resumed run, whose database already holds some of them rewritten, finds the same key)."""
-    own = {frozenset(p) for r in rounds for p in r["pairs"]}
-    verified = sorted(sorted(p) for p in ({frozenset(p) for p in inliers} - own))
+    """The state's key: settings, and the graph before the second look -- rebuilt from the saved rounds, whose pairs
+    a resumed run's database may already hold rewritten: each such pair as it was before its first round (tried or
+    not, verified or not: ``before`` / ``tried_before``), so a resumed run finds the key of the uninterrupted one."""
+    own: dict = {}
+    for r in rounds:
+        for p, b, tb in zip(r["pairs"], r["before"], r.get("tried_before", [True] * len(r["pairs"]))):
+            own.setdefault(frozenset(p), (b, tb))
+    tried0 = {frozenset(p) for p in tried if frozenset(p) not in own} | {p for p, (_, tb) in own.items() if tb}
+    verified0 = ({frozenset(p) for p in inliers if frozenset(p) not in own}
+                 | {p for p, (b, _) in own.items() if b > 0})
     h = hashlib.sha256()
-    h.update(json.dumps([sorted(sorted(p) for p in tried), verified, asdict(cfg), repr(matcher)]).encode())
+    h.update(json.dumps([sorted(sorted(p) for p in tried0), sorted(sorted(p) for p in verified0), asdict(cfg),
+                         repr(matcher)]).encode())
     return h.hexdigest()[:32]
 
 
@@ -248,13 +270,57 @@ class _Again:
         return self.sink.write(*args, **kwargs)
 
 
+def _orphans(tried: set, inliers: dict) -> list:
+    """The images of the tried pairs with no verified pair, sorted."""
+    seen = {n for p in tried for n in p}
+    verified = {n for p in inliers for n in p}
+    return sorted(seen - verified)
+
+
+def _orphan_round(source, tried: set, inliers: dict, cfg: SecondLookConfig) -> dict | None:
+    """The orphan round (module doc): ``(orphan, partner)`` for the ``orphan_pairs`` images most similar to each image
+    without a verified pair (:func:`guidedmatch.collection.retrieval.most_similar`), each unordered pair once, or
+    None when every image has a verified pair."""
+    orphans = _orphans(tried, inliers)
+    if not orphans or not cfg.orphan_pairs:
+        return None
+    from .retrieval import most_similar
+
+    t = time.perf_counter()
+    similar = most_similar(source, orphans, cfg.orphan_pairs, config=dict(progress=False))
+    pairs, seen = [], set()
+    for o in orphans:
+        for m in similar[o]:
+            if frozenset((o, m)) not in seen:
+                seen.add(frozenset((o, m)))
+                pairs.append([o, m])
+    return dict(kind="orphans", orphans=len(orphans), pairs=pairs, candidates=len(pairs), capped=False,
+                before=[0] * len(pairs), tried_before=[frozenset(p) in tried for p in pairs],
+                chain_s=time.perf_counter() - t, done=False)
+
+
+def _chain_round(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondLookConfig) -> dict | None:
+    """The next round of weak and chain-tied rejected pairs (:func:`_candidates`), or None when there is none."""
+    t = time.perf_counter()
+    pairs, support, total = _candidates(tried, inliers, nkp, looked, cfg)
+    if not pairs:
+        return None
+    have = {frozenset(p): len(m) for p, m in inliers.items()}
+    return dict(kind="chains", pairs=[list(p) for p in pairs], candidates=total, capped=total > len(pairs),
+                before=[have.get(frozenset(p), 0) for p in pairs],   # inliers before (a replay counts from these)
+                support_max=max(support), support_min=min(support), chain_s=time.perf_counter() - t, done=False)
+
+
 def second_look(source, sink, config=None, look: SecondLookConfig | dict | None = None, *,
                 state_path: str | os.PathLike | None | bool = True, client=None) -> dict:
-    """Match the weak pairs and the rejected pairs with enough chained correspondences again, with a prior (and
+    """Match the images without a verified pair against their most similar images with a longer start (the orphan
+    round), then the weak pairs and the rejected pairs with enough chained correspondences again, with a prior (and
     ``max_unguided`` when set), in rounds (module doc). ``sink``: an open
     :class:`~guidedmatch.collection.sinks.ColmapSink` with ``geometry="ours"``; ``config``: the
-    :class:`~guidedmatch.collection.engine.CollectionConfig` of the first pass (its matcher settings are kept). Returns the stage record: ``rounds`` (per round: candidates, pairs,
-    verified, time_s), ``verified`` (pairs the second look verified), ``stopped`` (why), ``time_s``, ``state``."""
+    :class:`~guidedmatch.collection.engine.CollectionConfig` of the first pass (its matcher settings are kept). Returns
+    the stage record: ``rounds`` (per round: kind, candidates, pairs, verified, time_s), ``verified`` (pairs the
+    second look verified), ``orphans`` (images without a verified pair before it, and how many of them have one
+    after), ``stopped`` (why), ``time_s``, ``state``."""
     from .config import CollectionConfig
     from .engine import match_collection
 
@@ -265,6 +331,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
     base = cconf.matcher
     budget = base.max_unguided if cfg.max_unguided is None else max(cfg.max_unguided, base.max_unguided or 0.0)
     cconf = dataclasses.replace(cconf, matcher=dataclasses.replace(base, max_unguided=budget))
+    oconf = dataclasses.replace(cconf, matcher=dataclasses.replace(
+        base, max_unguided=max(cfg.orphan_unguided, budget or 0.0)))
     t0 = time.perf_counter()
     db = Path(sink.path)
     state = Path(str(db) + ".second_look.json") if state_path is True else (Path(state_path) if state_path else None)
@@ -276,58 +344,92 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
     rounds = list(saved.get("rounds", []))
     stopped = saved.get("stopped")
     looked = {frozenset(p) for r in rounds for p in r["pairs"]}
+    orphans_before = None
     record = []
     k = 0
-    while stopped is None or k < len(rounds):
-        if k >= cfg.max_rounds:
-            stopped = stopped or f"max_rounds={cfg.max_rounds} reached"
-            break
+    while True:
+        chain_rounds = sum(r.get("kind") != "orphans" for r in rounds[:k])
         if k < len(rounds):
+            if rounds[k].get("kind") != "orphans" and chain_rounds >= cfg.max_rounds:
+                stopped = stopped or f"max_rounds={cfg.max_rounds} reached"
+                break
             r = rounds[k]
-            pairs = [tuple(p) for p in r["pairs"]]
         else:
-            t1 = time.perf_counter()
-            pairs, support, total = _candidates(tried, inliers, nkp, looked, cfg)
-            if not pairs:
+            if stopped is not None:
+                break
+            r = None
+            if cfg.max_rounds > 0 and not rounds:   # the orphan round comes first, once
+                orphans_before = len(_orphans(tried, inliers))
+                r = _orphan_round(source, tried, inliers, cfg)
+            if r is None:
+                if chain_rounds >= cfg.max_rounds:
+                    stopped = f"max_rounds={cfg.max_rounds} reached"
+                    _save(state, key, rounds, stopped)
+                    break
+                r = _chain_round(tried, inliers, nkp, looked, cfg)
+            if r is None:
                 stopped = "no rejected pair with enough chained correspondences left"
                 _save(state, key, rounds, stopped)
                 break
-            have = {frozenset(p): len(m) for p, m in inliers.items()}
-            r = dict(pairs=[list(p) for p in pairs], candidates=total, capped=total > len(pairs),
-                     before=[have.get(frozenset(p), 0) for p in pairs],   # inliers before (a replay counts from these)
-                     support_max=max(support), support_min=min(support), chain_s=time.perf_counter() - t1,
-                     done=False)
             rounds.append(r)
-            looked |= {frozenset(p) for p in pairs}
+            looked |= {frozenset(p) for p in r["pairs"]}
             _save(state, key, rounds, None)
         k += 1
+        pairs = [tuple(p) for p in r["pairs"]]
+        orphan = r.get("kind") == "orphans"
         if r.get("done"):
-            record.append(dict(round=k, pairs=len(pairs), verified=r.get("verified", 0),
+            record.append(dict(round=k, kind=r.get("kind", "chains"), pairs=len(pairs), verified=r.get("verified", 0),
                                inliers_gained=r.get("inliers_gained", 0), time_s=0.0, replayed=True))
             continue
         t1 = time.perf_counter()
         first = None
-        if cfg.prior:  # from the graph without this round's own pairs: a replay after a crash finds the same priors
-            own = {frozenset(p) for p in pairs}
+        if cfg.prior and not orphan:  # from the graph without this round's own pairs: a replay after a crash finds
+            own = {frozenset(p) for p in pairs}  # the same priors
             first = priors(pairs, {p: m for p, m in inliers.items() if frozenset(p) not in own}, nkp)
-        rep = match_collection(source, pairs, _Again(sink, pairs), cconf, client=client, first=first)
+        rep = match_collection(source, pairs, _Again(sink, pairs), oconf if orphan else cconf, client=client,
+                               first=first)
         tried, inliers, nkp = _read_inliers(sink)
         after = {frozenset(p): len(m) for p, m in inliers.items()}
         mine = [frozenset(p) for p in pairs]
         new = sum(p in after and b == 0 for p, b in zip(mine, r["before"]))
         gained = sum(after.get(p, 0) - b for p, b in zip(mine, r["before"]))
         r.update(done=True, verified=new, inliers_gained=gained, failed=len(rep.failed))
-        record.append(dict(round=k, candidates=r.get("candidates"), pairs=len(pairs), verified=new,
-                           inliers_gained=gained, failed=len(rep.failed), chain_s=r.get("chain_s", 0.0),
-                           time_s=time.perf_counter() - t1))
-        if new == 0:
+        record.append(dict(round=k, kind=r.get("kind", "chains"), candidates=r.get("candidates"), pairs=len(pairs),
+                           verified=new, inliers_gained=gained, failed=len(rep.failed),
+                           chain_s=r.get("chain_s", 0.0), time_s=time.perf_counter() - t1))
+        if new == 0 and not orphan:
             stopped = "a round verified no new pair"
         _save(state, key, rounds, stopped)
     verified = sum(r.get("verified", 0) for r in rounds)
+    orphan_rounds = [r for r in rounds if r.get("kind") == "orphans"]
+    orphans_after = len(_orphans(tried, inliers))
+    if orphans_before is None:  # a replay: the count of the round that was saved
+        orphans_before = orphan_rounds[0]["orphans"] if orphan_rounds else orphans_after
     return dict(rounds=record, verified=verified, inliers_gained=sum(r.get("inliers_gained", 0) for r in rounds),
                 looked=sum(len(r["pairs"]) for r in rounds), stopped=stopped,
+                orphans=dict(before=orphans_before, after=orphans_after,
+                             pairs=sum(len(r["pairs"]) for r in orphan_rounds),
+                             verified=sum(r.get("verified", 0) for r in orphan_rounds),
+                             max_unguided=oconf.matcher.max_unguided),
                 max_unguided=budget, min_chained=cfg.min_chained, time_s=time.perf_counter() - t0,
                 state=str(state) if state else None)
+
+
+def describe(record: dict) -> str:
+    """One line for a person of :func:`second_look`'s record.
+
+    >>> describe(dict(looked=7, verified=3, inliers_gained=120, time_s=1.5, rounds=[1, 2], stopped="done",
+    ...               orphans=dict(before=2, after=1, pairs=4, verified=1, max_unguided=0.1)))
+    '7 weak, rejected or orphan pairs matched again: 3 newly verified, +120 inliers (1.50 s, 2 round(s); stopped: done); images without a verified pair: 2 -> 1 (4 pairs at 0.1)'
+    """
+    o = record.get("orphans") or {}
+    text = (f"{record['looked']} weak, rejected or orphan pairs matched again: {record['verified']} newly verified, "
+            f"{record['inliers_gained']:+,} inliers ({record['time_s']:.2f} s, {len(record['rounds'])} round(s); "
+            f"stopped: {record['stopped']})")
+    if o.get("before"):
+        text += (f"; images without a verified pair: {o['before']} -> {o['after']} ({o['pairs']} pairs at "
+                 f"{o['max_unguided']:g})")
+    return text
 
 
 def _load(path: Path | None) -> dict:

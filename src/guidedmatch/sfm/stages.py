@@ -411,8 +411,9 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
     if conf.second_look is True and conf.geometry != "ours":
         say(conf, "      second look: not run (it reads our two-view geometries back: geometry ours)")
     if look is not None:
-        say(conf, f"      second look: {look['looked']} weak or rejected pairs matched again with a prior, "
-                  f"{look['verified']} newly verified ({look['time_s']:.1f} s; stopped: {look['stopped']})")
+        from ..collection.second_look import describe
+
+        say(conf, f"      second look: {describe(look)}")
     cap = done["inlier_cap"]
     if cap is not None:
         say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
