@@ -288,11 +288,11 @@ def shortlist(bow, k: int, block: int = 512, hub_k: int = 0) -> np.ndarray:
         return np.zeros((0, 2), np.int64)
     r = hub_scores(bow, hub_k, block) if hub_k > 0 else None
     keep = np.zeros((n, n), bool) if n <= 4096 else None
+    bt = bow.T.tocsc()
     sel_i, sel_j = [], []
-    for s, e, sim in _similarity_blocks(bow, block):
-        if r is not None:
-            sim = 2.0 * sim - r[s:e, None] - r[None, :]
-        order = np.argsort(-sim, axis=1, kind="stable")[:, :k]  # stable: ties go to the smaller index
+    for s in range(0, n, block):
+        e = min(n, s + block)
+        order = _top(bow, bt, np.arange(s, e), k, r)
         ii = np.repeat(np.arange(s, e), k)
         jj = order.reshape(-1)
         sel_i.append(ii)
@@ -306,6 +306,17 @@ def shortlist(bow, k: int, block: int = 512, hub_k: int = 0) -> np.ndarray:
     else:
         out = np.unique(np.stack([a, b], 1), axis=0)
     return out.astype(np.int64)
+
+
+def _top(bow, bt, rows: np.ndarray, k: int, r: np.ndarray | None) -> np.ndarray:
+    """``(len(rows), k)``: for each image of ``rows``, its ``k`` most similar other images, best first -- cosine of
+    the rows of ``bow`` (``bt`` = ``bow.T`` as CSC), or CSLS ``2 cos - r_i - r_j`` with the hub scores ``r``; ties go
+    to the smaller index (stable sort). :func:`shortlist` and :func:`most_similar` rank with it."""
+    sim = np.asarray((bow[rows] @ bt).todense(), np.float64)
+    sim[np.arange(len(rows)), rows] = -np.inf
+    if r is not None:
+        sim = 2.0 * sim - r[rows, None] - r[None, :]
+    return np.argsort(-sim, axis=1, kind="stable")[:, :k]
 
 
 # ---------------------------------------------------------------------------------------------------- the stage
@@ -436,14 +447,7 @@ def most_similar(source, queries, k: int, names=None, config: RetrievalConfig | 
         coarse, fine, bow = _bag(source, names, cfg, cached, {})
         if cached is None:  # no shortlist yet: k = 0 (a retrieval run computes its own and keeps the vocabulary)
             _save(path, key, 0, -1, coarse, fine, np.zeros((0, 2), np.int64), bow, names)
-        r = hub_scores(bow, cfg.hub_k, cfg.block) if cfg.hub_k > 0 else np.zeros(len(names))
-        out = {}
-        for q in queries:
-            i = index[q]
-            sim = np.asarray((bow[i] @ bow.T).todense(), np.float64).reshape(-1)
-            sim[i] = -np.inf
-            if cfg.hub_k > 0:
-                sim = 2.0 * sim - r[i] - r
-            order = np.argsort(-sim, kind="stable")[:max(0, min(int(k), len(names) - 1))]
-            out[q] = [names[int(j)] for j in order]
-    return out
+        r = hub_scores(bow, cfg.hub_k, cfg.block) if cfg.hub_k > 0 else None
+        rows = np.array([index[q] for q in queries], np.int64)
+        order = _top(bow, bow.T.tocsc(), rows, max(0, min(int(k), len(names) - 1)), r)
+    return {q: [names[int(j)] for j in o] for q, o in zip(queries, order)}

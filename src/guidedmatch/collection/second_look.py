@@ -277,11 +277,10 @@ def _orphans(tried: set, inliers: dict) -> list:
     return sorted(seen - verified)
 
 
-def _orphan_round(source, tried: set, inliers: dict, cfg: SecondLookConfig) -> dict | None:
-    """The orphan round (module doc): ``(orphan, partner)`` for the ``orphan_pairs`` images most similar to each image
-    without a verified pair (:func:`guidedmatch.collection.retrieval.most_similar`), each unordered pair once, or
-    None when every image has a verified pair."""
-    orphans = _orphans(tried, inliers)
+def _orphan_round(source, orphans: list, tried: set, cfg: SecondLookConfig) -> dict | None:
+    """The orphan round (module doc): ``(orphan, partner)`` for the ``orphan_pairs`` images most similar to each of
+    ``orphans`` (the images without a verified pair; :func:`guidedmatch.collection.retrieval.most_similar`), each
+    unordered pair once, or None when there is no orphan."""
     if not orphans or not cfg.orphan_pairs:
         return None
     from .retrieval import most_similar
@@ -359,8 +358,9 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
                 break
             r = None
             if cfg.max_rounds > 0 and not rounds:   # the orphan round comes first, once
-                orphans_before = len(_orphans(tried, inliers))
-                r = _orphan_round(source, tried, inliers, cfg)
+                orphans = _orphans(tried, inliers)
+                orphans_before = len(orphans)
+                r = _orphan_round(source, orphans, tried, cfg)
             if r is None:
                 if chain_rounds >= cfg.max_rounds:
                     stopped = f"max_rounds={cfg.max_rounds} reached"
