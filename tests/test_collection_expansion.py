@@ -155,3 +155,64 @@ def test_cli_retrieval_expands_by_default_and_no_expand_does_not(sequence_db, tm
     assert cli_main(["colmap", str(db2), "--pairs", "retrieval:1", "--no-expand", "--no-progress", "--log",
                      "none"]) == 0
     assert "expansion" not in capsys.readouterr().out
+
+
+def test_expansion_rounds_draw_the_chained_then_tracked_keypoints_first(sequence_db, tmp_path, monkeypatch):
+    """The shortlist is matched in the paper's order; every expansion round with the prior of the verified graph
+    before it (second_look.priors, both orientations of every candidate); prior=False: never."""
+    import numpy as np
+
+    from guidedmatch.collection import engine
+    from guidedmatch.collection.second_look import _read_inliers, priors
+
+    calls = []
+    real = engine.match_collection
+
+    def spy(source, pairs, sink, config=None, *, client=None, first=None):
+        pairs = [tuple(p) for p in pairs]
+        want = None
+        if first is not None:   # the graph before this round (its own pairs never tried yet)
+            _, inliers, nkp = _read_inliers(sink)
+            want = priors(pairs, inliers, nkp)
+        calls.append((pairs, first, want))
+        return real(source, pairs, sink, config, client=client, first=first)
+
+    monkeypatch.setattr(engine, "match_collection", spy)
+    db = tmp_path / "db.db"
+    shutil.copyfile(sequence_db, db)
+    rep = _run(db)
+    assert len(calls) == len(rep.stages) >= 2 and calls[0][1] is None   # the shortlist: no prior
+    for pairs, first, want in calls[1:]:
+        assert first is not None and set(first) == {q for a, c in pairs for q in ((a, c), (c, a))}
+        for k in first:
+            assert all(np.array_equal(x, y) for x, y in zip(first[k], want[k]))
+        assert any(len(first[k][0]) for k in first)   # triangle-closing pairs have chained keypoints
+    assert sorted(map(tuple, rep.prior_pairs)) == sorted(p for pairs, _, _ in calls[1:] for p in pairs)
+    assert rep.expansion["prior"] is True and all(s.get("prior") for s in rep.stages[1:])
+
+    calls.clear()
+    db2 = tmp_path / "db2.db"
+    shutil.copyfile(sequence_db, db2)
+    rep2 = _run(db2, dict(prior=False))
+    assert all(first is None for _, first, _ in calls) and rep2.prior_pairs == []
+
+
+def test_the_second_look_skips_the_pairs_the_expansion_matched_with_the_prior(sequence_db, tmp_path):
+    from guidedmatch.collection.second_look import _candidates, second_look, SecondLookConfig, _read_inliers
+    from guidedmatch.collection.sinks import ColmapSink
+    from guidedmatch.collection.sources import ColmapSource
+
+    db = tmp_path / "db.db"
+    shutil.copyfile(sequence_db, db)
+    rep = _run(db)
+    with ColmapSink(db) as sink:
+        tried, inliers, nkp = _read_inliers(sink)
+        cfg = SecondLookConfig(min_chained=1, weak_below=10**9)   # every weak or chain-tied pair is a candidate
+        everything, _, _ = _candidates(tried, inliers, nkp, set(), cfg)
+        skipped = {frozenset(p) for p in rep.prior_pairs}
+        left, _, _ = _candidates(tried, inliers, nkp, skipped, cfg)
+        assert skipped & {frozenset(p) for p in everything}     # the test means something
+        assert {frozenset(p) for p in left} == {frozenset(p) for p in everything} - skipped
+        look = second_look(ColmapSource(db), sink, CFG, dict(min_chained=1, weak_below=10**9, orphan_pairs=0),
+                           state_path=False, looked=rep.prior_pairs)
+    assert look["looked"] == len(left)

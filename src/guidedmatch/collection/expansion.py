@@ -6,6 +6,13 @@ shortlist, then in rounds every such triangle-closing pair (most common verified
 ``max_pairs_per_round``), until a round adds no verified pair, no candidate is left or ``max_rounds`` ran. This
 recovers the overlapping pairs a shortlist misses -- what COLMAP users emulate with transitive matching.
 
+With our two-view geometries a round's pairs are matched with the second look's prior (``prior=True``,
+:func:`guidedmatch.collection.second_look.priors`): image 1's chained keypoints -- matched to the other image through
+a verified common neighbour, which a triangle-closing pair always has -- are drawn first, then its tracked ones. The
+pair gets in its first matching what the second look would give it in a second one, and the second look skips it
+(:attr:`StagedReport.prior_pairs`). On the 220-image collection: 19 % fewer descriptor comparisons in all, 856 fewer
+pair matchings, 0.8 % fewer verified pairs, the same recall (docs/collections.md).
+
 The verified graph is read back from the sink: a COLMAP database's ``two_view_geometries`` (a pair is tried when it
 has a geometry row -- or, with ``geometry="colmap"``, a matches row -- and verified when its geometry has inlier
 matches; :func:`read_verified_graph`).
@@ -28,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..validation import check_number, config_from
+from ..validation import check_bool, check_number, config_from
 
 __all__ = ["ExpansionConfig", "StagedReport", "read_verified_graph", "triangle_candidates",
            "match_collection_expanded"]
@@ -44,6 +51,8 @@ class ExpansionConfig:
     max_pairs_per_round: int = 50_000     # candidates matched per round at most (most supported first)
     min_support: int = 1                  # common verified neighbours a candidate needs
     min_inliers: int = 1                  # inlier matches that make a pair verified (its geometry's inliers)
+    prior: bool = True                    # our geometries: draw each candidate's chained, then tracked keypoints first
+                                          # (second_look.priors); the second look then skips these pairs
 
     def __post_init__(self) -> None:
         own = "ExpansionConfig"
@@ -51,6 +60,7 @@ class ExpansionConfig:
         check_number(own, "max_pairs_per_round", self.max_pairs_per_round, lo=1, integer=True)
         check_number(own, "min_support", self.min_support, lo=1, integer=True)
         check_number(own, "min_inliers", self.min_inliers, lo=1, integer=True)
+        check_bool(own, "prior", self.prior)
 
 
 # ---------------------------------------------------------------------------------------------------- the graph
@@ -170,6 +180,7 @@ class StagedReport:
     verified_pairs: int = 0
     tried_pairs: int = 0
     failed: list = field(default_factory=list)
+    prior_pairs: list = field(default_factory=list)   # the expansion pairs matched with the prior (second_look skips)
 
     @property
     def ok(self) -> bool:
@@ -302,9 +313,21 @@ def match_collection_expanded(source, pairs, sink, config=None, expand: Expansio
                                                        "assign_s", "shortlist_s", "cache")}))
     shortlist = [tuple(p) for p in getattr(pairs, "pairs", pairs)]
 
-    def run(stage: str, todo, extra: dict) -> set:
+    with_prior = ecfg.prior and geometry == "ours"
+    prior_pairs: list = []
+
+    def run(stage: str, todo, extra: dict, prior: bool = False) -> set:
         t = time.perf_counter()
-        rep = match_collection(source, todo, sink, config, client=client)
+        first = None
+        if prior:  # from the verified graph without this round's own pairs: a replay after a crash finds the same
+            from .second_look import _read_inliers, priors   # priors (the round's pairs were never tried before it)
+
+            _, inliers, nkp = _read_inliers(sink)
+            own = {frozenset(p) for p in todo}
+            first = priors(todo, {p: m for p, m in inliers.items() if frozenset(p) not in own}, nkp)
+            prior_pairs.extend(todo)
+            extra = dict(extra, prior=True, prior_s=time.perf_counter() - t)
+        rep = match_collection(source, todo, sink, config, client=client, first=first)
         if geometry == "colmap":
             sink.verify()  # COLMAP's verification of the pairs with matches and no geometry yet
         reports.append(rep)
@@ -341,13 +364,14 @@ def match_collection_expanded(source, pairs, sink, config=None, expand: Expansio
         rounds_done += 1
         capped += bool(hit)
         tried, verified = run(f"expansion {rounds_done}", cand, dict(candidates=total, capped=bool(hit),
-                                                                      support_max=support))
+                                                                      support_max=support), prior=with_prior)
         if stages[-1]["verified"] == 0:  # the round's pairs were all untried: none verified = nothing added
             stopped = "a round added no verified pair"
             break
     if stopped is None:
         stopped = f"max_rounds={ecfg.max_rounds} reached"
     expansion = dict(rounds=rounds_done, stopped=stopped, capped_rounds=capped, max_rounds=ecfg.max_rounds,
-                     max_pairs_per_round=ecfg.max_pairs_per_round, state=str(state) if state else None)
+                     max_pairs_per_round=ecfg.max_pairs_per_round, prior=with_prior,
+                     state=str(state) if state else None)
     return StagedReport(stages, reports, expansion, time.perf_counter() - t_start, verified_pairs=len(verified),
-                        tried_pairs=len(tried), failed=failed)
+                        tried_pairs=len(tried), failed=failed, prior_pairs=prior_pairs)

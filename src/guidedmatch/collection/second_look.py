@@ -235,7 +235,7 @@ def _candidates(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondLo
     return [(a, c) for _, a, c in out], [-k for k, _, _ in out], total
 
 
-def _graph_key(tried: set, inliers: dict, rounds: list, cfg: SecondLookConfig, matcher) -> str:
+def _graph_key(tried: set, inliers: dict, rounds: list, cfg: SecondLookConfig, matcher, looked=()) -> str:
     """The state's key: settings, and the graph before the second look -- rebuilt from the saved rounds, whose pairs
     a resumed run's database may already hold rewritten: each such pair as it was before its first round (tried or
     not, verified or not: ``before`` / ``tried_before``), so a resumed run finds the key of the uninterrupted one."""
@@ -248,7 +248,7 @@ def _graph_key(tried: set, inliers: dict, rounds: list, cfg: SecondLookConfig, m
                  | {p for p, (b, _) in own.items() if b > 0})
     h = hashlib.sha256()
     h.update(json.dumps([sorted(sorted(p) for p in tried0), sorted(sorted(p) for p in verified0), asdict(cfg),
-                         repr(matcher)]).encode())
+                         repr(matcher)] + ([list(looked)] if len(looked) else [])).encode())
     return h.hexdigest()[:32]
 
 
@@ -311,7 +311,7 @@ def _chain_round(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondL
 
 
 def second_look(source, sink, config=None, look: SecondLookConfig | dict | None = None, *,
-                state_path: str | os.PathLike | None | bool = True, client=None) -> dict:
+                state_path: str | os.PathLike | None | bool = True, client=None, looked=()) -> dict:
     """Match the images without a verified pair against their most similar images with a longer start (the orphan
     round), then the weak pairs and the rejected pairs with enough chained correspondences again, with a prior (and
     ``max_unguided`` when set), in rounds (module doc). ``sink``: an open
@@ -319,7 +319,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
     :class:`~guidedmatch.collection.engine.CollectionConfig` of the first pass (its matcher settings are kept). Returns
     the stage record: ``rounds`` (per round: kind, candidates, pairs, verified, time_s), ``verified`` (pairs the
     second look verified), ``orphans`` (images without a verified pair before it, and how many of them have one
-    after), ``stopped`` (why), ``time_s``, ``state``."""
+    after), ``stopped`` (why), ``time_s``, ``state``. ``looked``: pairs already matched with the prior (the verified
+    expansion's, :class:`~guidedmatch.collection.expansion.ExpansionConfig` ``prior``): never candidates here."""
     from .config import CollectionConfig
     from .engine import match_collection
 
@@ -337,12 +338,13 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
     state = Path(str(db) + ".second_look.json") if state_path is True else (Path(state_path) if state_path else None)
     tried, inliers, nkp = _read_inliers(sink)
     saved = _load(state)
-    key = _graph_key(tried, inliers, saved.get("rounds", []), cfg, base)
+    before = sorted(sorted(p) for p in {frozenset(p) for p in looked})
+    key = _graph_key(tried, inliers, saved.get("rounds", []), cfg, base, before)
     if saved.get("key") != key:
         saved = {}
     rounds = list(saved.get("rounds", []))
     stopped = saved.get("stopped")
-    looked = {frozenset(p) for r in rounds for p in r["pairs"]}
+    looked = {frozenset(p) for r in rounds for p in r["pairs"]} | {frozenset(p) for p in before}
     orphans_before = None
     record = []
     k = 0

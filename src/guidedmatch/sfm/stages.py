@@ -329,7 +329,7 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
         if second_look is not None and geometry == "ours":
             from ..collection.second_look import second_look as run_second_look
 
-            look = run_second_look(source, sink, cconf, second_look)
+            look = run_second_look(source, sink, cconf, second_look, looked=getattr(report, "prior_pairs", ()))
         t_match = time.perf_counter() - t0
         if geometry == "colmap":
             t1 = time.perf_counter()
