@@ -180,7 +180,7 @@ def test_expansion_rounds_draw_the_chained_then_tracked_keypoints_first(sequence
     monkeypatch.setattr(engine, "match_collection", spy)
     db = tmp_path / "db.db"
     shutil.copyfile(sequence_db, db)
-    rep = _run(db)
+    rep = _run(db, dict(prior=True))
     assert len(calls) == len(rep.stages) >= 2 and calls[0][1] is None   # the shortlist: no prior
     for pairs, first, want in calls[1:]:
         assert first is not None and set(first) == {q for a, c in pairs for q in ((a, c), (c, a))}
@@ -193,8 +193,8 @@ def test_expansion_rounds_draw_the_chained_then_tracked_keypoints_first(sequence
     calls.clear()
     db2 = tmp_path / "db2.db"
     shutil.copyfile(sequence_db, db2)
-    rep2 = _run(db2, dict(prior=False))
-    assert all(first is None for _, first, _ in calls) and rep2.prior_pairs == []
+    rep2 = _run(db2)   # the default: no prior
+    assert all(first is None for _, first, _ in calls) and rep2.prior_pairs == [] and not rep2.expansion["prior"]
 
 
 def test_the_second_look_skips_the_pairs_the_expansion_matched_with_the_prior(sequence_db, tmp_path):
@@ -204,7 +204,7 @@ def test_the_second_look_skips_the_pairs_the_expansion_matched_with_the_prior(se
 
     db = tmp_path / "db.db"
     shutil.copyfile(sequence_db, db)
-    rep = _run(db)
+    rep = _run(db, dict(prior=True))
     with ColmapSink(db) as sink:
         tried, inliers, nkp = _read_inliers(sink)
         cfg = SecondLookConfig(min_chained=1, weak_below=10**9)   # every weak or chain-tied pair is a candidate

@@ -6,12 +6,13 @@ shortlist, then in rounds every such triangle-closing pair (most common verified
 ``max_pairs_per_round``), until a round adds no verified pair, no candidate is left or ``max_rounds`` ran. This
 recovers the overlapping pairs a shortlist misses -- what COLMAP users emulate with transitive matching.
 
-With our two-view geometries a round's pairs are matched with the second look's prior (``prior=True``,
-:func:`guidedmatch.collection.second_look.priors`): image 1's chained keypoints -- matched to the other image through
-a verified common neighbour, which a triangle-closing pair always has -- are drawn first, then its tracked ones. The
-pair gets in its first matching what the second look would give it in a second one, and the second look skips it
-(:attr:`StagedReport.prior_pairs`). On the 220-image collection: 19 % fewer descriptor comparisons in all, 856 fewer
-pair matchings, 0.8 % fewer verified pairs, the same recall (docs/collections.md).
+Optionally (``prior=True``, off by default) a round's pairs are matched with the second look's prior
+(:func:`guidedmatch.collection.second_look.priors`): image 1's chained keypoints -- matched to the other image
+through a verified common neighbour, which a triangle-closing pair always has -- are drawn first, then its tracked
+ones, and the second look skips those pairs (:attr:`StagedReport.prior_pairs`): one attempt per pair instead of
+two. On the 220-image collection: 19 % fewer descriptor comparisons, 0.8 % fewer verified pairs, the same recall;
+on buddha (``retrieval:20``) 28 % less CPU but 600 verified pairs instead of 612 and a median pose error of 0.225 deg
+instead of 0.216 (COLMAP 0.217): not the default (docs/collections.md).
 
 The verified graph is read back from the sink: a COLMAP database's ``two_view_geometries`` (a pair is tried when it
 has a geometry row -- or, with ``geometry="colmap"``, a matches row -- and verified when its geometry has inlier
@@ -51,8 +52,10 @@ class ExpansionConfig:
     max_pairs_per_round: int = 50_000     # candidates matched per round at most (most supported first)
     min_support: int = 1                  # common verified neighbours a candidate needs
     min_inliers: int = 1                  # inlier matches that make a pair verified (its geometry's inliers)
-    prior: bool = True                    # our geometries: draw each candidate's chained, then tracked keypoints first
-                                          # (second_look.priors); the second look then skips these pairs
+    prior: bool = False                   # our geometries: draw each candidate's chained, then tracked keypoints first
+                                          # (second_look.priors) and the second look skips these pairs: 19 % fewer
+                                          # comparisons on the 220 images, but buddha 0.216 -> 0.225 deg (one attempt
+                                          # per pair instead of two; docs/collections.md)
 
     def __post_init__(self) -> None:
         own = "ExpansionConfig"
