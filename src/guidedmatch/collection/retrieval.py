@@ -245,15 +245,21 @@ def bag_of_words(counts, n_words: int):
     return m.astype(np.float32)
 
 
+def _similarity(bow, bt, rows: np.ndarray) -> np.ndarray:
+    """``(len(rows), n) float64``: cosine of each image of ``rows`` with every image (``bt`` = ``bow.T`` as CSC),
+    ``-inf`` with itself."""
+    sim = np.asarray((bow[rows] @ bt).todense(), np.float64)
+    sim[np.arange(len(rows)), rows] = -np.inf
+    return sim
+
+
 def _similarity_blocks(bow, block: int):
     """``(s, e, cosine (e - s, n) float64 with -inf on the diagonal)`` by blocks of rows."""
     n = bow.shape[0]
     bt = bow.T.tocsc()
     for s in range(0, n, block):
         e = min(n, s + block)
-        sim = np.asarray((bow[s:e] @ bt).todense(), np.float64)
-        sim[np.arange(e - s), np.arange(s, e)] = -np.inf
-        yield s, e, sim
+        yield s, e, _similarity(bow, bt, np.arange(s, e))
 
 
 def hub_scores(bow, hub_k: int, block: int = 512) -> np.ndarray:
@@ -312,8 +318,7 @@ def _top(bow, bt, rows: np.ndarray, k: int, r: np.ndarray | None) -> np.ndarray:
     """``(len(rows), k)``: for each image of ``rows``, its ``k`` most similar other images, best first -- cosine of
     the rows of ``bow`` (``bt`` = ``bow.T`` as CSC), or CSLS ``2 cos - r_i - r_j`` with the hub scores ``r``; ties go
     to the smaller index (stable sort). :func:`shortlist` and :func:`most_similar` rank with it."""
-    sim = np.asarray((bow[rows] @ bt).todense(), np.float64)
-    sim[np.arange(len(rows)), rows] = -np.inf
+    sim = _similarity(bow, bt, rows)
     if r is not None:
         sim = 2.0 * sim - r[rows, None] - r[None, :]
     return np.argsort(-sim, axis=1, kind="stable")[:, :k]
