@@ -63,37 +63,41 @@ def _popcount64(x):
     return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
 
 
-@njit(inline="always", cache=True)
-def _hamming(a, b):
+# The distance primitives take the two descriptor arrays and the row of each (``A[i]`` vs ``B[j]``), never row views:
+# inside a kernel's loop a view (``A[i]``), and every array argument of a function inlined at Numba-IR level, is a new
+# reference, counted by two atomic updates of Numba's NRT -- the guided kernel spent a third of its time on them.
+# Neither are they inlined at Numba-IR level (LLVM inlines them): the fast-math flags of the L2 sums stay on their
+# own instructions, and the calling kernels' band test stays IEEE on every CPU.
+@njit(cache=True)
+def _hamming(A, i, B, j):
+    # Hamming bits between packed-word rows A[i] and B[j] (uint64)
     s = np.uint64(0)
-    for k in range(a.shape[0]):
-        s += _popcount64(a[k] ^ b[k])
+    for k in range(A.shape[1]):
+        s += _popcount64(A[i, k] ^ B[j, k])
     return np.float32(s)
 
 
 @njit(cache=True, fastmath={"reassoc", "contract"})
-def _l2sq(a, b):
+def _l2sq(A, i, B, j):
     # approximate squared L2 of float32 rows: 'reassoc' lets LLVM vectorize the sum, in an order set by the CPU's
     # vector width, so the value may differ in the last bits between CPUs; the matcher takes the kernel's best three
-    # and recomputes them exactly (guidedmatch.exact). Not inlined at Numba-IR level (as _l2sq_u8): the fast-math
-    # flags stay on these instructions, the calling kernel's band test stays IEEE on every CPU.
+    # and recomputes them exactly (guidedmatch.exact).
     s = np.float32(0.0)
-    for k in range(a.shape[0]):
-        d = a[k] - b[k]
+    for k in range(A.shape[1]):
+        d = A[i, k] - B[j, k]
         s += d * d
     return s
 
 
 @njit(cache=True, fastmath={"reassoc", "contract"})
-def _l2sq_u8(a, b):
+def _l2sq_u8(A, i, B, j):
     # exact squared L2 of byte-valued descriptors (e.g. SIFT, integers 0..255), summed in float32: every term and
     # partial sum is an integer below 2^24 (at most 255^2 * 256 = 16,646,400 for up to 256 dimensions), so any order
     # of summation -- the vectorized one 'reassoc' allows -- gives the exact value. Numba promotes int32 arithmetic to
-    # int64 lanes (4 per AVX2 register): 16 ns per 128-D distance vs 11 ns here. Not inlined at Numba-IR level, so
-    # the fast-math flags stay on these instructions only (LLVM inlines it; the kernels' band test stays IEEE).
+    # int64 lanes (4 per AVX2 register): 16 ns per 128-D distance vs 11 ns here.
     s = np.float32(0.0)
-    for k in range(a.shape[0]):
-        d = np.float32(a[k]) - np.float32(b[k])
+    for k in range(A.shape[1]):
+        d = np.float32(A[i, k]) - np.float32(B[j, k])
         s += d * d
     return s
 
@@ -120,21 +124,21 @@ def as_exact_uint8(desc: np.ndarray, block: int = 8192) -> np.ndarray | None:
     return out
 
 
-def desc_dist(a, b):  # pragma: no cover - replaced by the Numba overload below inside jitted code
-    """Descriptor distance: squared L2 (float32) for float or byte-valued rows, Hamming bits for uint64 word
-    rows."""
+def desc_dist(A, i, B, j):  # pragma: no cover - replaced by the Numba overload below inside jitted code
+    """Descriptor distance between rows ``A[i]`` and ``B[j]``: squared L2 (float32) for float or byte-valued rows,
+    Hamming bits for uint64 word rows."""
     raise NotImplementedError
 
 
 @overload(desc_dist)
-def _desc_dist_overload(a, b):
+def _desc_dist_overload(A, i, B, j):
     # resolved at compile time from the array dtype, so one cached kernel per descriptor kind
-    if isinstance(a, types.Array) and isinstance(a.dtype, types.Float):
-        return lambda a, b: _l2sq(a, b)
-    if isinstance(a, types.Array) and a.dtype == types.uint64:
-        return lambda a, b: _hamming(a, b)
-    if isinstance(a, types.Array) and a.dtype == types.uint8:
-        return lambda a, b: _l2sq_u8(a, b)
+    if isinstance(A, types.Array) and isinstance(A.dtype, types.Float):
+        return lambda A, i, B, j: _l2sq(A, i, B, j)
+    if isinstance(A, types.Array) and A.dtype == types.uint64:
+        return lambda A, i, B, j: _hamming(A, i, B, j)
+    if isinstance(A, types.Array) and A.dtype == types.uint8:
+        return lambda A, i, B, j: _l2sq_u8(A, i, B, j)
     return None
 
 
@@ -221,7 +225,7 @@ def _hamming_top2(q, t):
         j1 = -1
         j2 = -1
         for j in range(n2):
-            b1, j1, b2, j2 = _push(_hamming(q[i], t[j]), j, b1, j1, b2, j2)
+            b1, j1, b2, j2 = _push(_hamming(q, i, t, j), j, b1, j1, b2, j2)
         i1[i] = j1
         i2[i] = j2
         d1[i] = b1
@@ -241,7 +245,7 @@ def _hamming_col_best(q, t):
         b = np.float32(np.inf)
         k = -1
         for i in range(n1):
-            v = _hamming(q[i], t[j])
+            v = _hamming(q, i, t, j)
             if v < b:
                 b = v
                 k = i
@@ -310,28 +314,18 @@ def search_regions_kernel(p, use_so, x1_sorted, gap_lo, gap_hi, x1_lo, x1_hi, x2
 
 
 @njit(inline="always", cache=True)
-def _scan_strip(S, s, kmin, kmax, qd, desc2, lq, use_band, band, lo, hi, b1, j1, b2, j2, b3, j3, cnt):
-    # all points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the region
-    # predicate lo <= x <= hi and |a x + b y + c| <= band ([kmin, kmax] only limits the scan)
-    k0 = S.k0
-    nk = S.ncells
-    h = S.cell
+def _cells(k0, nk, h, kmin, kmax):
+    # the cells of a strip (``nk`` cells of ``h`` px from ``k0``) overlapping [kmin, kmax]: (c0, c1), empty when
+    # c0 > c1. Scalars only: an array argument of an inlined function costs Numba an atomic reference-count
+    # increment and decrement per call, i.e. per strip the guided kernel visits (a third of its time)
+    # int(t / h) of t >= 0 instead of t // h (a libm fmod call, 8 % of the kernel): the rounded quotient is at most
+    # one cell above the floor, and only where [kmin, kmax] -- padded by the caller by 1e-7 relative -- ends within
+    # rounding of a cell boundary: no point of the band lies there
     if kmax < k0 or kmin > k0 + nk * h:
-        return b1, j1, b2, j2, b3, j3, cnt
-    c0 = 0 if kmin <= k0 else min(int((kmin - k0) // h), nk - 1)
-    c1 = nk - 1 if kmax >= k0 + nk * h else min(int((kmax - k0) // h), nk - 1)
-    offsets, items, ps = S.offsets, S.items, S.pts_sorted
-    a = lq[0]
-    b = lq[1]
-    c = lq[2]
-    for p in range(offsets[s * nk + c0], offsets[s * nk + c1 + 1]):
-        x = ps[p, 0]
-        if x >= lo and x <= hi and (not use_band or abs(a * x + b * ps[p, 1] + c) <= band):
-            j = items[p]
-            d = desc_dist(qd, desc2[j])
-            cnt += 1
-            b1, j1, b2, j2, b3, j3 = _push3(d, j, b1, j1, b2, j2, b3, j3)
-    return b1, j1, b2, j2, b3, j3, cnt
+        return 1, 0
+    c0 = 0 if kmin <= k0 else min(int((kmin - k0) / h), nk - 1)
+    c1 = nk - 1 if kmax >= k0 + nk * h else min(int((kmax - k0) / h), nk - 1)
+    return c0, c1
 
 
 def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, rows, fcols, frows):
@@ -371,14 +365,17 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
     gy0 = rows.u0
     gy1 = gy0 + rows.nstrips * wr
     eps = 1e-7
+    c_off, c_items, c_ps, c_k0, c_nk, c_h = cols.offsets, cols.items, cols.pts_sorted, cols.k0, cols.ncells, cols.cell
+    r_off, r_items, r_ps, r_k0, r_nk, r_h = rows.offsets, rows.items, rows.pts_sorted, rows.k0, rows.ncells, rows.cell
+    ns_c = cols.nstrips
+    ns_r = rows.nstrips
     for q in range(nq):
-        qd = desc1[queries[q]]
+        qi = queries[q]
         lo = xlo[q]
         hi = xhi[q]
-        lq = lines[q]
-        a = lq[0]
-        b = lq[1]
-        c = lq[2]
+        a = lines[q, 0]
+        b = lines[q, 1]
+        c = lines[q, 2]
         b1 = np.float32(np.inf)
         b2 = np.float32(np.inf)
         b3 = np.float32(np.inf)
@@ -389,15 +386,15 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
         vis = 0
         xa = max(lo, gx0)
         xb = min(hi, gx1)
-        if xa > xb or cols.items.shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
+        if xa > xb or c_items.shape[0] == 0 or (use_band and a == 0.0 and b == 0.0):
             continue  # empty x-range, no image-2 points, or undefined epipolar line (query at the epipole)
         if not use_band or abs(b) >= abs(a):
             # vertical strips sorted by y; the band's y-extent over the strip's x-interval bounds the scan
             m = band / abs(b) if use_band else 0.0
             if use_band and abs(a) > 1e-300:
                 # x where the band meets the points' y-extent [ky0, ky1]: a x + c in [-b y - band, -b y + band]
-                ky0 = cols.k0
-                ky1 = ky0 + cols.ncells * cols.cell
+                ky0 = c_k0
+                ky1 = ky0 + c_nk * c_h
                 e1 = -b * ky0
                 e2 = -b * ky1
                 t1 = (min(e1, e2) - band - c) / a
@@ -408,7 +405,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 if xa > xb:
                     continue
             s_lo = int((xa - gx0) // w)
-            s_hi = min(int((xb - gx0) // w), cols.nstrips - 1)
+            s_hi = min(int((xb - gx0) // w), ns_c - 1)
             s = fcols[s_lo]
             while s <= s_hi:
                 vis += 1
@@ -424,8 +421,15 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 else:
                     kmin = -np.inf
                     kmax = np.inf
-                b1, j1, b2, j2, b3, j3, cnt = _scan_strip(cols, s, kmin, kmax, qd, desc2, lq, use_band, band, lo,
-                                                          hi, b1, j1, b2, j2, b3, j3, cnt)
+                # the points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the
+                # region predicate lo <= x <= hi and |a x + b y + c| <= band ([kmin, kmax] only limits the scan)
+                c0, c1 = _cells(c_k0, c_nk, c_h, kmin, kmax)
+                for p in range(c_off[s * c_nk + c0], c_off[s * c_nk + c1 + 1] if c0 <= c1 else 0):
+                    x = c_ps[p, 0]
+                    if x >= lo and x <= hi and (not use_band or abs(a * x + b * c_ps[p, 1] + c) <= band):
+                        j = c_items[p]
+                        cnt += 1
+                        b1, j1, b2, j2, b3, j3 = _push3(desc_dist(desc1, qi, desc2, j), j, b1, j1, b2, j2, b3, j3)
                 s = fcols[s + 1]
         else:
             # horizontal strips sorted by x; rows limited to where the band can meet x in [lo, hi]
@@ -433,8 +437,8 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
             ry0 = gy0
             ry1 = gy1
             # rows where the band can meet x in [lo, hi] clipped to the points' x-extent [kx0, kx1]
-            xl = max(lo, rows.k0)
-            xr = min(hi, rows.k0 + rows.ncells * rows.cell)
+            xl = max(lo, r_k0)
+            xr = min(hi, r_k0 + r_nk * r_h)
             if xl > xr:
                 continue
             if abs(b) > 1e-12:
@@ -447,7 +451,7 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
             if ry0 > ry1:
                 continue
             r_lo = max(0, int((ry0 - gy0) // wr))
-            r_hi = min(rows.nstrips - 1, int((ry1 - gy0) // wr))
+            r_hi = min(ns_r - 1, int((ry1 - gy0) // wr))
             r = frows[r_lo]
             while r <= r_hi:
                 vis += 1
@@ -460,8 +464,14 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 kmin -= eps * (1.0 + abs(kmin))
                 kmax += eps * (1.0 + abs(kmax))
                 if kmin <= kmax:
-                    b1, j1, b2, j2, b3, j3, cnt = _scan_strip(rows, r, kmin, kmax, qd, desc2, lq, use_band, band,
-                                                              lo, hi, b1, j1, b2, j2, b3, j3, cnt)
+                    c0, c1 = _cells(r_k0, r_nk, r_h, kmin, kmax)  # as for the column strips above
+                    for p in range(r_off[r * r_nk + c0], r_off[r * r_nk + c1 + 1] if c0 <= c1 else 0):
+                        x = r_ps[p, 0]
+                        if x >= lo and x <= hi and (not use_band or abs(a * x + b * r_ps[p, 1] + c) <= band):
+                            j = r_items[p]
+                            cnt += 1
+                            b1, j1, b2, j2, b3, j3 = _push3(desc_dist(desc1, qi, desc2, j), j, b1, j1, b2, j2, b3,
+                                                            j3)
                 r = frows[r + 1]
         i1[q] = j1
         i2[q] = j2
