@@ -455,3 +455,42 @@ def test_consistent_similarity_keeps_a_rotated_zoomed_view_and_drops_twins():
     keep = consistent_similarity(a1, a2, s1, s2, np.ones(200, bool))
     assert not keep[:20].any() and keep[20:].all()
     assert consistent_similarity(a1, a2, s1, s2, np.zeros(200, bool)).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(m=st.integers(7, 40), needed=st.integers(7, 45), conf=st.sampled_from([0.9, 0.99, 0.999]))
+def test_iterations_needed_is_the_smallest_confident_count(m, needed, conf):
+    """The verdict's RANSAC budget: the smallest number of uniform 7-point draws after which a model with `needed`
+    inliers among `m` has had an all-inlier sample with probability >= conf -- counted by enumeration of the
+    samples, not by the formula."""
+    import itertools
+
+    from guidedmatch.geometry import _iterations_needed
+
+    n = _iterations_needed(m, needed, 7, 10**9, conf)
+    if needed >= m:
+        assert n == 1
+        return
+    good = sum(1 for s in itertools.combinations(range(m), 7) if max(s) < needed) if m <= 14 else None
+    total = sum(1 for _ in itertools.combinations(range(m), 7)) if m <= 14 else None
+    from math import comb
+    p = (good / total) if good is not None else comb(needed, 7) / comb(m, 7)
+    assert 1 - (1 - p) ** n >= conf - 1e-12
+    assert n == 1 or 1 - (1 - p) ** (n - 1) < conf
+    assert _iterations_needed(m, needed, 7, 100, conf) == min(n, 100)
+
+
+def test_verdict_budget_cuts_hopeless_fits_only():
+    """Few correspondences: the fits stop at the budget that would find a verifiable model (reported in the
+    evidence); many: the configured maximum. A verifiable model among few correspondences is still found."""
+    rng = np.random.default_rng(3)
+    few = two_view_geometry(rng.uniform(0, 1000, (20, 2)), rng.uniform(0, 1000, (20, 2)), (1000, 1000), (1000, 1000))
+    assert few.verdict == "no-overlap" and few.evidence["iterations_F"] < 200 and few.evidence["iterations_H"] < 200
+    many = two_view_geometry(rng.uniform(0, 1000, (300, 2)), rng.uniform(0, 1000, (300, 2)), (1000, 1000),
+                             (1000, 1000))
+    assert many.evidence["iterations_F"] == VerdictConfig().max_iters
+    s = general_pair(7, n_points=24, noise=0.3)  # 18 true correspondences, 6 random: verified within the budget
+    x1, x2 = s.x1n.copy(), s.x2n.copy()
+    x2[18:] = rng.uniform(0, 1, (6, 2)) * SIZE
+    g = two_view_geometry(x1, x2, SIZE, SIZE)
+    assert g.verdict == "verified" and g.evidence["iterations_F"] < VerdictConfig().max_iters

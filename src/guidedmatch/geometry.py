@@ -218,6 +218,27 @@ def transfer_error(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return e
 
 
+def _iterations_needed(m: int, needed: int, sample: int, max_iters: int, confidence: float = 0.999) -> int:
+    """RANSAC draws that find, with ``confidence``, an all-inlier ``sample`` of a model with ``needed`` inliers
+    among ``m`` correspondences (hypergeometric: ``C(needed, s) / C(m, s)`` per draw), at most ``max_iters``.
+
+    The verdict only asks whether a model with ``needed`` (independent) inliers exists; USAC's own stopping rule
+    (the same confidence, from the best model found so far) runs to ``max_iters`` when nothing good exists --
+    the case of every unrelated pair. ``m <= needed``: every draw is all-inlier if such a model exists.
+
+    >>> _iterations_needed(20, 15, 7, 10000), _iterations_needed(30, 15, 7, 10000), _iterations_needed(60, 15, 7, 10000)
+    (80, 2182, 10000)
+    """
+    if m < sample or needed >= m:
+        return min(max_iters, 1 if needed >= m and m >= sample else max_iters)
+    p = math.comb(needed, sample) / math.comb(m, sample)
+    if p <= 0.0:
+        return max_iters
+    if p >= 1.0:
+        return 1
+    return int(min(max_iters, math.ceil(math.log(1.0 - confidence) / math.log1p(-p))))
+
+
 def _fit_homography(x1, x2, threshold, max_iters, seed, prosac: bool = False):
     if len(x1) < 4:
         return None
@@ -426,8 +447,11 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
     F = None
     nf = 0
     only = second_search == "only" and frames is not None
+    iters_f = _iterations_needed(len(a), max(c.min_inliers, math.floor(bound_f) + 1), 7, c.max_iters)
+    iters_h = _iterations_needed(len(a), max(c.min_inliers, math.floor(bound_h) + 1), 4, c.max_iters)
+    ev.update(iterations_F=iters_f, iterations_H=iters_h)
     fr = None if only else estimate_fundamental(a, b, method=c.method, threshold=c.threshold_px / 2.0,
-                                                max_iters=c.max_iters, seed=c.seed)
+                                                max_iters=iters_f, seed=c.seed)
     if fr:
         F = fr.F
         with np.errstate(invalid="ignore"):
@@ -443,7 +467,7 @@ def two_view_geometry(x1, x2, size1, size2, config: VerdictConfig | None = None,
         if n_p > nf:
             F, nf = np.asarray(F_prior, np.float64), n_p
             ev.update(F_inliers_raw=int(inl_p.sum()), F_from_prior=True)
-    H = _fit_homography(a, b, c.threshold_px, c.max_iters, c.seed, prosac=c.method == "prosac")
+    H = _fit_homography(a, b, c.threshold_px, iters_h, c.seed, prosac=c.method == "prosac")
     nh = 0
     if H is not None:
         inl_h = transfer_error(H, a, b) <= c.threshold_px
