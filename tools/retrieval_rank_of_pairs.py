@@ -8,6 +8,7 @@ import numpy as np
 
 from guidedmatch.collection import retrieval as R
 from guidedmatch.collection.sources import ColmapSource
+import pycolmap  # after guidedmatch (zlib)
 
 feat, matched = sys.argv[1], sys.argv[2]
 src = ColmapSource(feat)
@@ -26,8 +27,7 @@ id2name = dict(con.execute("SELECT image_id, name FROM images"))
 index = {nm: i for i, nm in enumerate(names)}
 stat = []
 for pid, rows in con.execute("SELECT pair_id, rows FROM two_view_geometries"):
-    b = pid % 2147483647
-    a = (pid - b) // 2147483647
+    a, b = pycolmap.pair_id_to_image_pair(int(pid))
     stat.append((prank[index[id2name[a]], index[id2name[b]]], rows))
 stat = np.array(stat)
 v = stat[:, 1] > 0

@@ -224,18 +224,18 @@ def _iterations_needed(m: int, needed: int, sample: int, max_iters: int, confide
 
     The verdict only asks whether a model with ``needed`` (independent) inliers exists; USAC's own stopping rule
     (the same confidence, from the best model found so far) runs to ``max_iters`` when nothing good exists --
-    the case of every unrelated pair. ``m <= needed``: every draw is all-inlier if such a model exists.
+    the case of every unrelated pair. ``m <= needed``: one draw (all of them inliers, or no such model).
 
     >>> _iterations_needed(20, 15, 7, 10000), _iterations_needed(30, 15, 7, 10000), _iterations_needed(60, 15, 7, 10000)
     (80, 2182, 10000)
     """
-    if m < sample or needed >= m:
-        return min(max_iters, 1 if needed >= m and m >= sample else max_iters)
-    p = math.comb(needed, sample) / math.comb(m, sample)
+    if m < sample:
+        return max_iters  # too few for a fit at all: the estimators refuse it, the count does not matter
+    if needed >= m:
+        return min(1, max_iters)
+    p = math.comb(needed, sample) / math.comb(m, sample)  # in [0, 1): needed < m
     if p <= 0.0:
-        return max_iters
-    if p >= 1.0:
-        return 1
+        return max_iters  # needed < sample (a min_inliers below the sample size): no all-inlier sample to wait for
     return int(min(max_iters, math.ceil(math.log(1.0 - confidence) / math.log1p(-p))))
 
 
