@@ -487,6 +487,48 @@ def test_a_dead_worker_process_is_a_clear_error(tmp_path):
     assert "__main__" in proc.stdout
 
 
+def test_a_broken_pool_kills_workers_that_ignore_sigterm():
+    """When one worker dies, the pool's own SIGTERM to the others can hang for ever (pycolmap's glog handler
+    deadlocks in a worker signalled while it imports; CI hung 300 s on the test above). Here the workers ignore
+    SIGTERM outright: the broken pool must still be a prompt BrokenProcessPool, its workers killed, not a hang."""
+    import multiprocessing
+    import os
+    import signal
+    import threading
+    import time
+    from concurrent.futures.process import BrokenProcessPool
+
+    from guidedmatch.collection.image_folder import pool_results
+
+    before = {p.pid for p in multiprocessing.active_children()}
+    outcome = []
+
+    def consume():
+        try:
+            list(pool_results(time.sleep, [60.0] * 4, 2, signal.signal, (signal.SIGTERM, signal.SIG_IGN)))
+        except BrokenProcessPool as exc:
+            outcome.append(exc)
+
+    t = threading.Thread(target=consume, daemon=True)
+    t.start()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:   # both workers up, then one of them killed
+        ours = [p for p in multiprocessing.active_children() if p.pid not in before]
+        if len(ours) == 2:
+            break
+        time.sleep(0.1)
+    time.sleep(1.0)
+    os.kill(ours[0].pid, signal.SIGKILL)
+    t.join(30)
+    stuck = t.is_alive()
+    for p in multiprocessing.active_children():   # on failure: free the stuck pool so the session can end
+        if p.pid not in before:
+            p.kill()
+    t.join(30)
+    assert not stuck, "the broken pool hung on a worker that ignores SIGTERM"
+    assert len(outcome) == 1
+
+
 def _sift_db(path, n_images=2, n=10):
     sift = [pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
                                         np.random.default_rng(k).integers(0, 255, (n, 128), dtype=np.uint8))

@@ -276,31 +276,50 @@ def _results(tasks: list, workers: int):
         for t in tasks:
             yield _work(t)
         return
+    import pycolmap
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        yield from pool_results(_work, tasks, workers, _init_worker, (int(pycolmap.logging.minloglevel),))
+    except BrokenProcessPool:
+        raise MemoryLimitError("an extraction worker process died: killed by the system (out of memory?) -- the "
+                               "images written so far are kept: rerun with fewer processes (--threads 1) or a "
+                               "smaller --max-image-size -- or, from a Python script, the script lacks an "
+                               "`if __name__ == \"__main__\":` guard (worker processes are spawned)") from None
+
+
+def pool_results(fn, tasks: list, workers: int, initializer=None, initargs: tuple = ()):
+    """``fn(task)`` for each task in a pool of ``workers`` spawned processes, yielded in task order with at most
+    ``2 * workers`` tasks in flight. When a worker dies the pool is broken (``BrokenProcessPool``) and every other
+    worker is killed with SIGKILL before the error leaves: the pool's own SIGTERM can hang a worker for ever,
+    because pycolmap installs glog's failure signal handler, which symbolizes a stack trace inside the handler and
+    can deadlock when the signal lands while the worker holds the allocator's or the loader's lock (measured: 1 of 60
+    processes sent SIGTERM at a random moment of importing pycolmap and OpenCV never ended) -- and the pool's exit
+    would wait for it."""
     import multiprocessing
     from collections import deque
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
-    import pycolmap
-
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-                             initargs=(int(pycolmap.logging.minloglevel),)) as pool:
-        pending, it = deque(), iter(tasks)
-        try:
-            for t in it:
-                pending.append(pool.submit(_work, t))
-                if len(pending) >= 2 * workers:
-                    yield pending.popleft().result()
-            while pending:
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=initializer,
+                               initargs=initargs)
+    procs = getattr(pool, "_processes", None)   # the pool's {pid: Process}, the one its manager thread joins
+    pending = deque()
+    try:
+        for t in tasks:
+            pending.append(pool.submit(fn, t))
+            if len(pending) >= 2 * workers:
                 yield pending.popleft().result()
-        except BrokenProcessPool:
-            raise MemoryLimitError("an extraction worker process died: killed by the system (out of memory?) -- the "
-                                   "images written so far are kept: rerun with fewer processes (--threads 1) or a "
-                                   "smaller --max-image-size -- or, from a Python script, the script lacks an "
-                                   "`if __name__ == \"__main__\":` guard (worker processes are spawned)") from None
-        finally:
-            for f in pending:
-                f.cancel()
+        while pending:
+            yield pending.popleft().result()
+    except BrokenProcessPool:
+        for p in list((procs or {}).values()):
+            p.kill()
+        raise
+    finally:
+        for f in pending:
+            f.cancel()
+        pool.shutdown(wait=True)
 
 
 def check_camera_model(camera_model: str, what: str = "") -> None:
