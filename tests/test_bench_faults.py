@@ -172,3 +172,21 @@ def test_kill_9_in_a_retrieval_and_expansion_run(coll, tmp_path):
     c = {k: v for k, v in coll.items() if k != "ref"}   # its own uninterrupted reference: the retrieval run's
     row = bf.kill_colmap(c, tmp_path, "in-process, retrieval:4 + expansion", 3, np.random.default_rng(1))
     assert (row.trials, row.survived, row.lost, row.corrupt, row.tracebacks) == (3, 3, 0, 0, 0), row.details
+
+
+def test_compare_db_accepts_a_pending_selection_pass_only_on_the_side_named():
+    """Right after a kill, a committed geometry may still hold every verdict inlier (tighten / cap run after
+    matching): accepted as a superset on the side named, with the same config and matrices; nothing else is."""
+    F, H = np.arange(9.0).reshape(3, 3) + 1, np.eye(3)
+    big, small = np.array([[0, 1], [2, 3], [4, 5]]), np.array([[0, 1], [4, 5]])
+    base = {"integrity": "ok", "error": None, "matches": {}, "features": {}, "ids": {}}
+    after = dict(base, geometries={("a", "b"): (3, big, F, H)})
+    final = dict(base, geometries={("a", "b"): (3, small, F, H)})
+    assert compare_db(after, final, only={("a", "b")})                       # strict by default
+    assert compare_db(after, final, only={("a", "b")}, pending_pass="state") == []
+    assert compare_db(after, final, only={("a", "b")}, pending_pass="ref")   # the wrong side
+    assert compare_db(final, after, only={("a", "b")}, pending_pass="ref") == []
+    other = dict(base, geometries={("a", "b"): (3, big, 2 * F + 1, H)})    # another F: never the same pair
+    assert compare_db(other, final, only={("a", "b")}, pending_pass="state")
+    stray = dict(base, geometries={("a", "b"): (3, np.array([[0, 1], [6, 7]]), F, H)})   # not a superset
+    assert compare_db(stray, final, only={("a", "b")}, pending_pass="state")

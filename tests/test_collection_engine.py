@@ -588,6 +588,7 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
 
     import pycolmap
 
+    from guidedmatch.base import DEFAULT_INLIER_PX
     from guidedmatch.collection.pairs import exhaustive_pairs
     from guidedmatch.collection.sinks import ColmapSink
     from guidedmatch.collection.sources import ColmapSource
@@ -629,9 +630,10 @@ def test_cli_kill_9_mid_run_then_rerun_equals_an_uninterrupted_run_and_maps(rend
     summary = json.loads((tmp_path / "run2.jsonl").read_text().splitlines()[-1])
     assert summary["event"] == "summary" and summary["done"] == n_pairs - len(stored) and summary["failed"] == []
 
-    src = ColmapSource(ref)  # the uninterrupted reference run (in-process)
+    src = ColmapSource(ref)  # the uninterrupted reference run (in-process), then what the CLI does after matching
     with ColmapSink(ref) as sink:
         rep = match_collection(src, exhaustive_pairs(src.names()), sink, dict(progress=False, workers=0))
+        sink.tighten_inliers(DEFAULT_INLIER_PX)
     assert rep.done == n_pairs and not rep.failed
     assert db_rows(db) == db_rows(ref)
 
@@ -673,6 +675,8 @@ def test_cli_refuses_a_second_writer_and_bad_inputs_with_one_line(rendered_db, t
     one_line_error(run_cli("colmap", db, "--timeline", tmp_path / "t.jpg"), "--timeline", "PNG")
     one_line_error(run_cli("colmap", db, "--timeline", "/proc/nope/t.png"), "--timeline", "/proc/nope")
     one_line_error(run_cli("colmap", db, "--max-inliers-per-pair", "-1"), "--max-inliers-per-pair")
+    one_line_error(run_cli("colmap", db, "--inlier-px", "-1"), "--inlier-px")
+    one_line_error(run_cli("colmap", db, "--inlier-px", "nan"), "--inlier-px")
     with ColmapSink(db):  # another writer holds the database
         one_line_error(run_cli("colmap", db, "--workers", "0"), "being written by another process")
     assert db_rows(db) == {}
@@ -797,6 +801,38 @@ def test_cli_scheduler_address_attaches_to_a_running_cluster(rendered_db, cluste
     assert db_rows(a) == db_rows(b)
     r = run_cli("colmap", a, "--scheduler", "tcp://127.0.0.1:9", "--log", "none", "--no-progress")  # nobody listens
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "cannot connect" in r.stderr, r.stderr
+
+
+def test_cli_inlier_px_hands_the_mapper_the_precise_inliers(rendered_db, tmp_path):
+    """--inlier-px: the default (1.5) keeps, of the inliers --inlier-px 0 stores, those within 1.5 px of the pair's
+    model (at least 15 per pair; the raw matches all kept), says so, and the mapper still registers every view that
+    overlaps another; --geometry colmap leaves COLMAP's verification alone."""
+    import shutil
+
+    import pycolmap
+
+    from guidedmatch.collection.sinks import tighten_two_view_inliers
+
+    root, mv = rendered_db
+    everything, tight = tmp_path / "all.db", tmp_path / "tight.db"
+    shutil.copy(root / "fresh.db", everything)
+    shutil.copy(root / "fresh.db", tight)
+    assert run_cli("colmap", everything, "--workers", "0", "--no-progress", "--inlier-px", "0").returncode == 0
+    r = run_cli("colmap", tight, "--workers", "0", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "inliers within 1.5 px of their pair's F / H (at least 15 per pair" in r.stdout, r.stdout
+    a, b = db_rows(everything), db_rows(tight)
+    assert a.keys() == b.keys()
+    assert sum(len(g[1]) for _, g in b.values()) < sum(len(g[1]) for _, g in a.values())
+    for key, (m, g) in b.items():
+        assert m == a[key][0] and set(map(tuple, g[1])) <= set(map(tuple, a[key][1][1]))
+        assert len(g[1]) >= min(15, len(a[key][1][1]))
+    tighten_two_view_inliers(everything, 1.5)      # the same selection, applied afterwards
+    assert db_rows(everything) == b
+    recs = pycolmap.incremental_mapping(tight, root / "img", tmp_path / "sparse")
+    registered = {im.name for im in max(recs.values(), key=lambda x: x.num_reg_images()).images.values()
+                  if im.has_pose}
+    assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
 
 
 def test_cli_max_inliers_per_pair_caps_the_mappers_inliers(rendered_db, tmp_path):

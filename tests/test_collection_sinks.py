@@ -612,6 +612,127 @@ def test_cap_inliers_bad_input_and_lock(db_copy):
         sink.cap_inliers(10)
 
 
+def _tighten_reference(path, key, config, F, H, inl, px, min_keep):
+    """The inliers tightening keeps, computed slowly: each correspondence's Sampson distance to the row's F (or
+    transfer error of its H for a planar row) one at a time from the raw COLMAP keypoints, then a plain sort."""
+    db = pycolmap.Database.open(str(path))
+    try:
+        kp1, kp2 = (np.asarray(db.read_keypoints(i))[:, :2].astype(np.float64) for i in key)
+    finally:
+        db.close()
+    errs = []
+    for a, b in inl:
+        x1, x2 = np.r_[kp1[a], 1.0], np.r_[kp2[b], 1.0]
+        if config in (4, 5, 6):
+            y = H @ x1
+            errs.append(float(np.hypot(y[0] / y[2] - x2[0], y[1] / y[2] - x2[1])))
+        else:
+            l2, l1 = F @ x1, F.T @ x2
+            errs.append(abs(float(x2 @ F @ x1)) / np.sqrt(l2[0] ** 2 + l2[1] ** 2 + l1[0] ** 2 + l1[1] ** 2))
+    if len(inl) <= min_keep:
+        return inl
+    within = [k for k, e in enumerate(errs) if e <= px]
+    if len(within) < min_keep:
+        within = sorted(sorted(range(len(errs)), key=lambda k: (errs[k], k))[:min_keep])
+    return inl[within]
+
+
+@pytest.mark.parametrize("px", [0.5, 1.5])
+def test_tighten_inliers_keeps_those_within_px_of_the_rows_model(tmp_path, px):
+    """Every row keeps exactly the reference's inliers: within px of its own F (Sampson, COLMAP pixels) or, for a
+    planar row, of its H; at least 15; rows of at most 15 untouched; config, F, H and the raw matches unchanged; a
+    second pass changes nothing."""
+    from guidedmatch.collection.sinks import tighten_two_view_inliers
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(3, (320, 240), seed=5, isolated=False)
+    write_views(mv, tmp_path / "img")
+    src = images_to_database(tmp_path / "img", tmp_path / "db.db", detector="sift", max_features=800, progress=False)
+    with ColmapSink(tmp_path / "db.db") as sink:
+        for a, b in ((0, 1), (0, 2), (1, 2)):
+            fa, fb = src.load(mv.names[a]), src.load(mv.names[b])
+            r = match(fa, fb)
+            g = r.geometry
+            if (a, b) == (1, 2):   # one planar row: the same inliers judged by the verdict's H
+                g = TwoViewGeometry("verified", "H", None, g.H, g.inliers, g.num_inliers, g.num_matches, "planar")
+            sink.write(mv.names[a], mv.names[b], r.pairs, r.distances, g)
+    src.close()
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    full = {}
+    for pid in db.read_two_view_geometry_num_inliers()[0]:
+        i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
+        g = db.read_two_view_geometry(i1, i2)
+        full[(i1, i2)] = (int(g.config), None if g.F is None else np.array(g.F), None if g.H is None else np.array(g.H),
+                          np.asarray(g.inlier_matches, dtype=np.int64).copy())
+    db.close()
+    assert sorted(v[0] for v in full.values()) == [3, 6]   # 0-2 do not overlap: one F row, one planar row
+    before = _geometry_rows(tmp_path / "db.db")
+    rep = tighten_two_view_inliers(tmp_path / "db.db", px)
+    after = _geometry_rows(tmp_path / "db.db")
+    expected = {key: _tighten_reference(tmp_path / "db.db", key, c, F, H, inl, px, 15)
+                for key, (c, F, H, inl) in full.items()}
+    for key, (config, F, inl, raw) in before.items():
+        c2, F2, inl2, raw2 = after[key]
+        assert c2 == config and np.array_equal(F2, F) and np.array_equal(raw2, raw)
+        assert np.array_equal(inl2, expected[key]), key
+    assert rep["inliers_before"] == sum(len(v[2]) for v in before.values())
+    assert rep["inliers_after"] == sum(len(v) for v in expected.values())
+    assert rep["pairs_tightened"] == sum(len(expected[k]) < len(before[k][2]) for k in before) >= 1
+    assert tighten_two_view_inliers(tmp_path / "db.db", px)["pairs_tightened"] == 0
+    assert all(np.array_equal(after[key][2], v[2]) for key, v in _geometry_rows(tmp_path / "db.db").items())
+
+
+def test_tighten_inliers_on_a_scene_with_known_noise(tmp_path):
+    """Synthetic correspondences of a known F, a third of them displaced 2-3 px off their epipolar line: tightening
+    at 1.5 px keeps exactly the exact ones (and the floor keeps 15 of a pair whose inliers are all displaced)."""
+    from guidedmatch.collection.sinks import tighten_two_view_inliers
+
+    rng = np.random.default_rng(3)
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    R, t = pycolmap.Rotation3d(np.array([0.0, 0.1, 0.02])).matrix(), np.array([1.0, 0.05, 0.1])
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
+    n = 90
+    X = np.c_[rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(4, 8, n)]
+    x1 = (K @ X.T).T
+    x1 = x1[:, :2] / x1[:, 2:]
+    x2 = (K @ (R @ X.T + t[:, None])).T
+    x2 = x2[:, :2] / x2[:, 2:]
+    off = np.arange(n) % 3 == 0
+    line = (F @ np.c_[x1, np.ones(n)].T).T
+    normal = line[:, :2] / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
+    x2 = x2 + off[:, None] * normal * rng.uniform(2.2, 3.0, n)[:, None] * 2   # ~2x the Sampson distance
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    cid = db.write_camera(pycolmap.Camera.create_from_model_name(0, "PINHOLE", 300.0, 320, 240))
+    ids = [db.write_image(pycolmap.Image(name=f"{k}.png", camera_id=cid)) for k in range(4)]
+    for iid, x in zip(ids, (x1, x2, x1, x2)):
+        db.write_keypoints(iid, x.astype(np.float32))
+    idx = np.c_[np.arange(n), np.arange(n)].astype(np.uint32)
+    for (a, b), rows in (((0, 1), idx), ((2, 3), idx[off])):
+        g = pycolmap.TwoViewGeometry()
+        g.config, g.F, g.inlier_matches = 3, F, rows
+        db.write_matches(ids[a], ids[b], rows)
+        db.write_two_view_geometry(ids[a], ids[b], g)
+    db.close()
+    rep = tighten_two_view_inliers(tmp_path / "db.db", 1.5)
+    rows = _geometry_rows(tmp_path / "db.db")
+    assert np.array_equal(rows[(ids[0], ids[1])][2][:, 0], np.flatnonzero(~off))
+    assert len(rows[(ids[2], ids[3])][2]) == 15 and rep["pairs_tightened"] == 2
+
+
+def test_tighten_inliers_bad_input_and_lock(db_copy):
+    from guidedmatch.collection.sinks import tighten_two_view_inliers
+
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ConfigError):
+            tighten_two_view_inliers(db_copy, bad)
+    with pytest.raises(ConfigError):
+        tighten_two_view_inliers(db_copy, 1.5, min_inliers=-1)
+    with ColmapSink(db_copy):
+        with pytest.raises(DatabaseBusyError):
+            tighten_two_view_inliers(db_copy, 1.5)
+
+
 # ---------------------------------------------------------------------------------------------- full disk
 class _Statvfs:
     """A filesystem with ``free`` bytes available (os.statvfs's fields the sinks read)."""

@@ -494,3 +494,31 @@ def test_verdict_budget_cuts_hopeless_fits_only():
     x2[18:] = rng.uniform(0, 1, (6, 2)) * SIZE
     g = two_view_geometry(x1, x2, SIZE, SIZE)
     assert g.verdict == "verified" and g.evidence["iterations_F"] < VerdictConfig().max_iters
+
+
+@settings(max_examples=200, deadline=None)
+@given(e=arrays(np.float64, st.integers(0, 60), elements=st.one_of(st.floats(0, 5), st.just(np.nan))),
+       px=st.floats(0, 4), k=st.integers(0, 20))
+def test_closest_inliers_equals_reference(e, px, k):
+    """Against the rule written out: all when at most k; else those within px; else the k smallest (NaN last,
+    ties by index)."""
+    from guidedmatch.geometry import closest_inliers
+
+    got = closest_inliers(e, px, k).tolist()
+    if len(e) <= k:
+        want = list(range(len(e)))
+    else:
+        want = [i for i in range(len(e)) if e[i] <= px]
+        if len(want) < k:
+            key = [(np.inf if np.isnan(v) else v, i) for i, v in enumerate(e)]
+            want = sorted(i for _, i in sorted(key)[:k])
+    assert got == want
+
+
+def test_closest_inliers_bad_input():
+    from guidedmatch.errors import ConfigError
+    from guidedmatch.geometry import closest_inliers
+
+    for px, k in ((-1.0, 0), (float("nan"), 0), (1.0, -1)):
+        with pytest.raises(ConfigError):
+            closest_inliers(np.zeros(3), px, k)

@@ -97,7 +97,8 @@ def test_project_of_another_folder_refused(tmp_path):
                                 dict(camera="PINHOLE:-1,1,1,1"), dict(geometry="both"), dict(mode="fast"),
                                 dict(num_threads=0), dict(peak_threshold=0.002, detector="ours:sift"),
                                 dict(matcher={"no_such_field": 1}), dict(pairs=""),
-                                dict(max_inliers_per_pair=-1), dict(max_inliers_per_pair=99)])
+                                dict(max_inliers_per_pair=-1), dict(max_inliers_per_pair=99), dict(inlier_px=-1),
+                                dict(inlier_px=float("nan")), dict(inlier_px="1.5")])
 def test_config_errors(kw):
     with pytest.raises(ConfigError):
         SfmConfig(**kw)
@@ -213,6 +214,8 @@ def test_sfm_end_to_end_and_resume(rendered, tmp_path):
     before = database_pair_stats(out / "database.db")   # (opening with pycolmap bumps SQLite's change counter)
     line = _one_error_line(run_cli(*args, "--mode", "epi"))
     assert "were matched with" in line
+    line = _one_error_line(run_cli(*args, "--inlier-px", "3"))   # the mapper's inliers are part of the matching
+    assert "were matched with" in line and "'inlier_px': 3.0" in line
     assert database_pair_stats(out / "database.db") == before
 
 

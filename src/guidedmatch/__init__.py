@@ -37,6 +37,7 @@ _EXPORTS = {
     "open_source": "collection", "images_to_database": "collection", "exhaustive_pairs": "collection",
     "sequential_pairs": "collection", "pairs_from_spec": "collection", "ColmapSink": "collection",
     "H5MatchesSink": "collection", "cap_two_view_inliers": "collection",
+    "tighten_two_view_inliers": "collection",
     "match_collection": "collection.engine", "CollectionConfig": "collection.engine",
     "CollectionReport": "collection.engine",
     # errors

@@ -11,7 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, get_args
 
-__all__ = ["Alignment", "APPROACHES", "RansacMethod", "USAC_METHOD_NAMES", "Verdict", "VERDICTS", "Failure"]
+__all__ = ["Alignment", "APPROACHES", "RansacMethod", "USAC_METHOD_NAMES", "Verdict", "VERDICTS", "Failure",
+           "DEFAULT_INLIER_PX"]
 
 #: Alignment approaches of :func:`guidedmatch.alignment.align_from_fundamental` (§III-E): the paper's four
 #: (``"a"``-``"d"``) plus ``"c_inplane"`` (the intended approach 3)
@@ -31,6 +32,11 @@ VERDICTS = {
     "no-overlap": "no model is supported beyond chance: the images do not overlap (or share too little to tell)",
     "too-few-matches": "fewer correspondences than a model needs (8 for F, 4 for H): nothing can be verified",
 }
+
+#: The inliers a COLMAP mapper gets from ``guidedmatch colmap`` / ``sfm`` (``--inlier-px``): those within this many
+#: pixels of their pair's verified F (Sampson) or H (transfer error) -- the verdict decides at 3 px, the mapper
+#: gets the more precise ones (docs/collections.md, "The inliers the mapper gets")
+DEFAULT_INLIER_PX = 1.5
 
 
 @dataclass(frozen=True)

@@ -65,7 +65,8 @@ from .base import USAC_METHOD_NAMES, VERDICTS
 from .epipolar import estimate_fundamental, sampson_distance
 
 __all__ = ["VERDICTS", "VerdictConfig", "TwoViewGeometry", "two_view_geometry", "report_geometry",
-           "random_inlier_bound", "COLMAP_CONFIG", "consistent_frames", "consistent_similarity", "fundamental_support", "spread_matches"]
+           "random_inlier_bound", "COLMAP_CONFIG", "consistent_frames", "consistent_similarity", "fundamental_support", "spread_matches",
+           "closest_inliers"]
 
 # VERDICTS (verdict -> meaning) is defined in guidedmatch.base and found here too
 
@@ -559,3 +560,30 @@ def spread_matches(xy, image_size, scores, k: int, grid: int = 16) -> np.ndarray
     rank = np.arange(m) - np.repeat(starts, np.diff(np.r_[starts, m]))  # position within its cell
     pick = order[np.lexsort((order, s[order], rank))]   # rounds, then score, then index
     return pick[: int(k)].astype(np.int64)
+
+
+def closest_inliers(errors, max_error: float, min_keep: int = 0) -> np.ndarray:
+    """Indices (ascending) of the correspondences whose ``errors`` are at most ``max_error``; when fewer than
+    ``min_keep`` are, the ``min_keep`` with the smallest errors instead (ties by index; a NaN error is never
+    within and comes last). All of them when there are at most ``min_keep``.
+
+    What it is for: the inliers a COLMAP mapper gets (:meth:`guidedmatch.collection.ColmapSink.tighten_inliers`,
+    ``--inlier-px``): a verified pair keeps its inliers within 1.5 px of its model, but never falls below the
+    ``min_keep`` (15) inliers COLMAP's mapper needs to use the pair at all.
+
+    >>> closest_inliers(np.array([0.5, 2.0, 1.0, 3.0]), 1.5).tolist()
+    [0, 2]
+    >>> closest_inliers(np.array([0.5, 2.0, 1.0, 3.0]), 1.5, min_keep=3).tolist()   # the 3 closest
+    [0, 1, 2]
+    """
+    e = np.asarray(errors, dtype=np.float64).reshape(-1)
+    k = int(min_keep)
+    if k < 0 or not max_error >= 0:
+        from .errors import ConfigError
+
+        raise ConfigError(f"closest_inliers: max_error must be >= 0 and min_keep >= 0; got {max_error}, {min_keep}")
+    within = np.flatnonzero(e <= max_error)
+    if len(within) >= k or len(e) <= k:
+        return within if len(e) > k else np.arange(len(e))
+    order = np.lexsort((np.arange(len(e)), np.nan_to_num(e, nan=np.inf)))
+    return np.sort(order[:k])

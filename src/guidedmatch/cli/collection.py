@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..base import DEFAULT_INLIER_PX
 from ..config import MODES
 from ..errors import ConfigError, GuidedMatchError, InputError
 from ..features import writable_folder
@@ -87,6 +88,10 @@ def add_commands(sub, parents) -> None:
                    help="then keep at most K inliers per pair for the mapper, spread over the image, best first "
                         "(default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; "
                         "below 100 COLMAP's mapper cannot pick an initial pair)")
+    c.add_argument("--inlier-px", type=float, default=DEFAULT_INLIER_PX, metavar="PX",
+                   help="with --geometry ours: the mapper gets the inliers within PX of their pair's F / H, at least "
+                        f"15 per pair (default {DEFAULT_INLIER_PX:g}; the verdict decides at 3 px; 0 = all of them; "
+                        "docs/collections.md)")
     add_matching_options(c, MODES)
     add_expansion_options(c)
     add_second_look_option(c)
@@ -205,11 +210,14 @@ def cmd_colmap(args) -> int:
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
         raise ConfigError(f"--max-inliers-per-pair must be >= 0 (0 = all inliers); got {args.max_inliers_per_pair}")
+    if not args.inlier_px >= 0:
+        raise ConfigError(f"--inlier-px must be >= 0 (0 = all inliers); got {args.inlier_px}")
     expand = expansion_wanted(args.pairs, args.expand, args.expand_rounds)
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
                                max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
-                               second_look={} if second_look_on(args.second_look, args.geometry) else None)
+                               second_look={} if second_look_on(args.second_look, args.geometry) else None,
+                               inlier_px=args.inlier_px)
     if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:
@@ -218,6 +226,10 @@ def cmd_colmap(args) -> int:
         print(f"second look: {describe(look)}")
     if done["verified"] is not None:
         print(f"verified   : {done['verified']} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
+    if (tight := done["inlier_px"]) is not None:
+        print(f"mapper     : {tight['inliers_after']:,} of {tight['inliers_before']:,} inliers within "
+              f"{tight['max_error_px']:g} px of their pair's F / H (at least {tight['min_inliers']} per pair; "
+              f"{tight['pairs_tightened']} pairs tightened, {tight['time_s']:.2f} s)")
     if (cap := done["inlier_cap"]) is not None:
         print(f"mapper     : {cap['inliers_after']:,} of {cap['inliers_before']:,} inliers kept (at most "
               f"{cap['max_inliers']} per pair, spread; {cap['pairs_capped']} pairs capped, {cap['time_s']:.2f} s)")

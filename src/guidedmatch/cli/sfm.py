@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..base import DEFAULT_INLIER_PX
 from ..config import MODES
 from .common import parse_kv, positive_int
 
@@ -55,8 +56,8 @@ def _conf(args, **extra):
     from ..sfm import SfmConfig
 
     names = ("detector", "max_features", "max_image_size", "peak_threshold", "camera_model", "camera",
-             "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "workers",
-             "scheduler", "mapper", "seed", "second_look", "pipeline")
+             "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "inlier_px",
+             "workers", "scheduler", "mapper", "seed", "second_look", "pipeline")
     kw = {k: getattr(args, k) for k in names if hasattr(args, k)}
     if getattr(args, "config", None):
         kw["matcher"] = parse_kv(args.config, "--config") or None
@@ -196,6 +197,9 @@ def add_commands(sub, parents) -> None:
                    "per pair handed to the mapper, spread over the image, best first (default 1000; 0 = all): the "
                    "mapper's time follows its observations, and on Herz-Jesus-P8 1000 gave poses at least as good as "
                    "all of them (docs/collections.md)")
+    s.add_argument("--inlier-px", type=float, default=DEFAULT_INLIER_PX, metavar="PX", help="with --geometry ours: "
+                   "the mapper gets the inliers within PX of their pair's F / H, at least 15 per pair (default "
+                   f"{DEFAULT_INLIER_PX:g}; the verdict decides at 3 px; 0 = all: docs/collections.md)")
     s.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=None,
                    help="match again the weak pairs and the rejected pairs that verified neighbours tie together by "
                         "chained matches, their chained keypoints drawn first (default: on with --geometry ours; "

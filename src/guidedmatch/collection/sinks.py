@@ -23,13 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base import DEFAULT_INLIER_PX
 from ..errors import ConfigError, DatabaseError, InputError, OutputError
 from .hloc_sink import H5MatchesSink, names_to_pair
 from .sink_base import MatchSink, WriteLock, _check_pairs, _check_writable, check_database_space
 from .sink_base import SPACE_MARGIN  # noqa: F401 - found here by the fault bench and the tests
 
 __all__ = ["MatchSink", "ColmapSink", "H5MatchesSink", "names_to_pair", "WriteLock", "colmap_pixel_geometry",
-           "cap_two_view_inliers"]
+           "cap_two_view_inliers", "tighten_two_view_inliers"]
 
 _T = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # x_cv = T x_colmap
 _T_INV = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
@@ -301,58 +302,119 @@ class ColmapSink(MatchSink):
         the mapper needs"). Returns ``{"max_inliers", "grid", "pairs", "pairs_capped", "inliers_before",
         "inliers_after", "time_s"}`` (``pairs`` = geometries with inliers).
         """
-        import pycolmap
-
         from ..geometry import spread_matches
         from ..validation import check_number
         from .colmap_source import _descriptor_rows, _is_binary
 
         check_number("cap_inliers", "max_inliers", max_inliers, lo=1, integer=True)
         check_number("cap_inliers", "grid", grid, lo=1, integer=True)
-        if self._db is None:
-            raise OutputError(f"ColmapSink({self.path}) is closed")
-        t0 = time.perf_counter()
-        db = self._db
-        pids, counts = (np.asarray(a, dtype=np.int64) for a in db.read_two_view_geometry_num_inliers())
-        report = {"max_inliers": int(max_inliers), "grid": int(grid), "pairs": int(np.count_nonzero(counts)),
-                  "pairs_capped": 0, "inliers_before": int(counts.sum()), "inliers_after": int(counts.sum())}
-        big = np.sort(pids[counts > max_inliers])
-        cache: dict[int, tuple] = {}
-        cache_bytes = 256 << 20
 
-        def load(iid: int):
+        def rows(db, iid):
             """(keypoints x, y, raw descriptor rows, binary?, image size): no float copy of the descriptors -- only
             the inlier rows are compared. Raw rows are ~150 B per SIFT feature: 256 MB hold ~200 images of 8192."""
-            if iid not in cache:
-                while cache and sum(c[1].nbytes + c[0].nbytes for c in cache.values()) > cache_bytes:
-                    cache.pop(next(iter(cache)))   # oldest first
-                desc = db.read_descriptors(iid)
-                shape = np.shape(desc.data)
-                kind, rows = _descriptor_rows(desc, int(shape[1]) if len(shape) == 2 else 0)
-                cam = db.read_camera(db.read_image(iid).camera_id)
-                cache[iid] = (np.asarray(db.read_keypoints(iid))[:, :2], rows, _is_binary(kind),
-                              (int(cam.width), int(cam.height)))
-            return cache[iid]
+            desc = db.read_descriptors(iid)
+            shape = np.shape(desc.data)
+            kind, raw = _descriptor_rows(desc, int(shape[1]) if len(shape) == 2 else 0)
+            cam = db.read_camera(db.read_image(iid).camera_id)
+            return (np.asarray(db.read_keypoints(iid))[:, :2], raw, _is_binary(kind), (int(cam.width), int(cam.height)))
 
-        for pid in big:
-            i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
-            g = db.read_two_view_geometry(i1, i2)
-            m = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)
+        def keep(g, m, load, i1, i2):
             if len(m) <= max_inliers:
-                continue
-            (kp1, d1, binary, size1), (_, d2, _, _) = load(int(i1)), load(int(i2))
+                return None
+            (kp1, d1, binary, size1), (_, d2, _, _) = load(i1), load(i2)
             a, b = d1[m[:, 0]], d2[m[:, 1]]
             if binary:   # packed bits: Hamming
                 dist = np.unpackbits(np.bitwise_xor(a, b), axis=1).sum(axis=1).astype(np.float64)
             else:
                 dist = np.linalg.norm(a.astype(np.float32) - b.astype(np.float32), axis=1)
-            keep = np.sort(spread_matches(kp1[m[:, 0]], size1, dist, max_inliers, grid))
-            g.inlier_matches = np.ascontiguousarray(m[keep], dtype=np.uint32)
+            return np.sort(spread_matches(kp1[m[:, 0]], size1, dist, max_inliers, grid))
+
+        report = self._rewrite_inliers(lambda counts: counts > max_inliers, rows, keep)
+        return {"max_inliers": int(max_inliers), "grid": int(grid), "pairs": report["pairs"],
+                "pairs_capped": report["pairs_rewritten"], "inliers_before": report["inliers_before"],
+                "inliers_after": report["inliers_after"], "time_s": report["time_s"]}
+
+    def tighten_inliers(self, max_error_px: float = DEFAULT_INLIER_PX, *, min_inliers: int = 15) -> dict:
+        """Keep, in every two-view geometry of the database, the inlier matches within ``max_error_px`` of the row's
+        own model: the Sampson distance to its F (COLMAP pixels, as the keypoints), or for a planar / panoramic row
+        (configuration 4-6) the transfer error of its H; at least the ``min_inliers`` closest (COLMAP's mapper uses
+        no pair with fewer: ``min_num_matches`` 15), and rows with at most ``min_inliers`` inliers untouched
+        (:func:`guidedmatch.geometry.closest_inliers`). Rows without a model (UNDEFINED, DEGENERATE, or no F / H)
+        are not touched.
+
+        Why: our verdict decides at 3 px, where random correspondences are rare enough to tell a pair from chance;
+        the mapper then triangulates what it is given, and the inliers between 1.5 and 3 px -- a third of a dense
+        guided match set -- carry more localization error than information (docs/collections.md, "The inliers the
+        mapper gets"). Like :meth:`cap_inliers`: only the geometry rows change, each pair in its own transaction, and
+        a rerun with the same value changes nothing. Returns ``{"max_error_px", "min_inliers", "pairs",
+        "pairs_tightened", "inliers_before", "inliers_after", "time_s"}``.
+        """
+        from ..geometry import closest_inliers, transfer_error
+        from ..epipolar import sampson_distance
+        from ..validation import check_number
+
+        check_number("tighten_inliers", "max_error_px", max_error_px, lo=0, lo_open=True)
+        check_number("tighten_inliers", "min_inliers", min_inliers, lo=0, integer=True)
+
+        def rows(db, iid):
+            return (np.asarray(db.read_keypoints(iid))[:, :2].astype(np.float64),)
+
+        def keep(g, m, load, i1, i2):
+            F = None if g.F is None else np.asarray(g.F, dtype=np.float64)
+            H = None if g.H is None else np.asarray(g.H, dtype=np.float64)
+            planar = int(g.config) in (4, 5, 6)
+            model = H if planar and H is not None and np.any(H) else F if F is not None and np.any(F) else None
+            if model is None:
+                return None
+            (kp1,), (kp2,) = load(i1), load(i2)
+            x1, x2 = kp1[m[:, 0]], kp2[m[:, 1]]
+            err = transfer_error(model, x1, x2) if model is H else sampson_distance(model, x1, x2)
+            idx = closest_inliers(err, float(max_error_px), int(min_inliers))
+            return None if len(idx) == len(m) else idx
+
+        report = self._rewrite_inliers(lambda counts: counts > min_inliers, rows, keep)
+        return {"max_error_px": float(max_error_px), "min_inliers": int(min_inliers), "pairs": report["pairs"],
+                "pairs_tightened": report["pairs_rewritten"], "inliers_before": report["inliers_before"],
+                "inliers_after": report["inliers_after"], "time_s": report["time_s"]}
+
+    def _rewrite_inliers(self, candidates, rows, keep, cache_bytes: int = 256 << 20) -> dict:
+        """The pass :meth:`cap_inliers` and :meth:`tighten_inliers` share: for every two-view geometry whose inlier
+        count ``candidates(counts)`` selects (in pair-id order), ``keep(g, m, load, i1, i2)`` gives the indices into
+        its ``(K, 2)`` inlier matches ``m`` to keep (or None: unchanged), and the row is rewritten with those in its
+        own transaction. ``load(image_id)`` returns ``rows(db, image_id)``, kept in a cache of ``cache_bytes`` (oldest
+        out first). Returns ``{"pairs", "pairs_rewritten", "inliers_before", "inliers_after", "time_s"}``."""
+        import pycolmap
+
+        if self._db is None:
+            raise OutputError(f"ColmapSink({self.path}) is closed")
+        t0 = time.perf_counter()
+        db = self._db
+        pids, counts = (np.asarray(a, dtype=np.int64) for a in db.read_two_view_geometry_num_inliers())
+        report = {"pairs": int(np.count_nonzero(counts)), "pairs_rewritten": 0,
+                  "inliers_before": int(counts.sum()), "inliers_after": int(counts.sum())}
+        cache: dict[int, tuple] = {}
+
+        def load(iid: int):
+            if iid not in cache:
+                while cache and sum(a.nbytes for c in cache.values() for a in c if isinstance(a, np.ndarray)) \
+                        > cache_bytes:
+                    cache.pop(next(iter(cache)))   # oldest first
+                cache[iid] = rows(db, iid)
+            return cache[iid]
+
+        for pid in np.sort(pids[candidates(counts)]):
+            i1, i2 = (int(i) for i in pycolmap.pair_id_to_image_pair(int(pid)))
+            g = db.read_two_view_geometry(i1, i2)
+            m = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)
+            idx = keep(g, m, load, i1, i2)
+            if idx is None:
+                continue
+            g.inlier_matches = np.ascontiguousarray(m[idx], dtype=np.uint32).reshape(-1, 2)
             self.check_space(g.inlier_matches.nbytes)
             with pycolmap.DatabaseTransaction(db):
                 db.update_two_view_geometry(i1, i2, g)
-            report["pairs_capped"] += 1
-            report["inliers_after"] -= len(m) - len(keep)
+            report["pairs_rewritten"] += 1
+            report["inliers_after"] -= len(m) - len(idx)
         report["time_s"] = time.perf_counter() - t0
         return report
 
@@ -382,3 +444,17 @@ def cap_two_view_inliers(database_path: str | os.PathLike, max_inliers: int, *, 
     """
     with ColmapSink(database_path, geometry="none") as sink:
         return sink.cap_inliers(max_inliers, grid=grid)
+
+
+def tighten_two_view_inliers(database_path: str | os.PathLike, max_error_px: float = DEFAULT_INLIER_PX, *,
+                             min_inliers: int = 15) -> dict:
+    """:meth:`ColmapSink.tighten_inliers` on a COLMAP database (under the sink's write lock): every two-view
+    geometry keeps its inliers within ``max_error_px`` of its own F / H (at least the ``min_inliers`` closest).
+
+    >>> tighten_two_view_inliers("missing.db", 1.5)
+    Traceback (most recent call last):
+    ...
+    guidedmatch.errors.DatabaseError: COLMAP database not found: missing.db
+    """
+    with ColmapSink(database_path, geometry="none") as sink:
+        return sink.tighten_inliers(max_error_px, min_inliers=min_inliers)

@@ -188,7 +188,10 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         warm_up(cache, mdir)
         items = [kv for kv in method[5:].split(";") if kv]   # ours@a=1;b=2: several settings
         # each setting as CLI words: ours@second_look is a flag (--second-look), anything else a matcher --config
-        words = [[f"--{kv.replace('_', '-')}"] if kv in OURS_FLAGS else ["--config", kv] for kv in items]
+        # ours@inlier_px=0: a `guidedmatch colmap` option (--inlier-px 0), not a matcher setting
+        words = [[f"--{kv.replace('_', '-')}"] if kv in OURS_FLAGS else
+                 ["--inlier-px", kv.split("=", 1)[1]] if kv.startswith("inlier_px=") else ["--config", kv]
+                 for kv in items]
         t = _timed_process([sys.executable, "-c", OURS_MATCH_SCRIPT, "colmap", str(db), "--no-progress", "--log", "none",
                             *(w for ws in words for w in ws)], mdir / "match.log")
         rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(" ".join(ws) for ws in words)}

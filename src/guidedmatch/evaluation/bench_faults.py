@@ -142,7 +142,7 @@ def kill_colmap(coll: dict, work: Path, backend: str, trials: int, rng: np.rando
         run, info = run_and_kill(_colmap_args(db, backend), t, kill_when=trigger)
         after = db_state(db)
         committed = set(after["geometries"])
-        broken = compare_db(after, ref, only=committed)
+        broken = compare_db(after, ref, only=committed, pending_pass="state")
         if partial_rows(after):
             broken.append(f"{partial_rows(after)} half-stored pairs")
         rerun = run_cli(_colmap_args(db, backend))
@@ -216,7 +216,8 @@ def kill_sfm(coll: dict, work: Path, per_stage: int, rng: np.random.Generator) -
             have_db = after["error"] != "missing"
             extracted = sum(1 for kp, d in after["features"].values() if kp is not None and d is not None)
             committed = set(after["geometries"])
-            broken = compare_db(after, ref, only=committed, skip=reordered_pairs(after, ref)) if have_db else []
+            broken = (compare_db(after, ref, only=committed, skip=reordered_pairs(after, ref), pending_pass="state")
+                      if have_db else [])
             if have_db and after["integrity"] not in (None, "ok"):
                 broken.append("integrity")
             rerun = run_cli(_sfm_args(coll["images"], out))
@@ -232,7 +233,7 @@ def kill_sfm(coll: dict, work: Path, per_stage: int, rng: np.random.Generator) -
             diffs = compare_db(final, ref, features=True, skip=reordered)
             if have_db:  # what was stored before the kill is what the rerun kept
                 diffs += [f"{d} (vs the state after the kill)" for d in
-                          compare_db(final, after, only=committed)]
+                          compare_db(final, after, only=committed, pending_pass="ref")]
                 lost_imgs = [n for n, f in after["features"].items()
                              if None not in f and final["features"].get(n) != f]
                 if lost_imgs:
@@ -283,8 +284,8 @@ def disk_full_colmap(coll: dict, folder: Path, ref: dict, size: int, *, log: boo
         run = run_cli(args, preexec_fn=fs.preexec())
         after = db_state(db)
         committed = set(after["geometries"])
-        broken = compare_db(after, ref, only=committed) + ([f"{partial_rows(after)} half-stored pairs"]
-                                                          if partial_rows(after) else [])
+        broken = (compare_db(after, ref, only=committed, pending_pass="state")
+                  + ([f"{partial_rows(after)} half-stored pairs"] if partial_rows(after) else []))
         problems = _expect_exit2(run, db) if run.rc != 0 else []
         fs.resize(max(grown, size) * 3 + (16 << 20))
         if fs.method == "rlimit":

@@ -286,9 +286,10 @@ def _e2e_ours(image_dir: Path, gt: dict, work: Path, threads: int, seed: int) ->
     st = rep["stages"]
     ev = evaluate_poses(poses_from_reconstruction(str(d / "sparse" / "0")), gt) if rep["registered"] else None
     cap = st["matching"].get("inlier_cap")
+    first = st["matching"].get("inlier_px") or cap   # the verdict's inliers, before the mapper's selection
     return {"pipeline": "guidedmatch sfm", "total_s": total, "extraction_s": st["extraction"]["time_s"],
             "matching_s": st["matching"]["time_s"], "mapping_s": st["mapping"]["time_s"],
-            "verified_inliers": cap["inliers_before"] if cap else st["matching"]["verified_inliers"],
+            "verified_inliers": first["inliers_before"] if first else st["matching"]["verified_inliers"],
             "mapper_inliers": st["matching"]["verified_inliers"], "registered": rep["registered"],
             "points3D": rep["points3D"], "median_pose_error_deg": ev.median_error_deg if ev else None,
             "auc": ev.auc if ev else None}

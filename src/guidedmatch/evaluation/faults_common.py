@@ -233,11 +233,19 @@ def _same_matrix(a, b) -> bool:
     return bool(min(np.abs(a - b).max(), np.abs(a + b).max()) < 1e-9)
 
 
-def _same_row(table: str, x, y) -> bool:
+def _same_row(table: str, x, y, pending_pass: str | None = None) -> bool:
+    """Rows equal; ``pending_pass`` "state" / "ref": a geometry whose inlier set is a superset of the other's is
+    also accepted on that side (same configuration and matrices) -- the mapper's selection passes (tighten, cap)
+    run after matching, so a kill between them leaves committed pairs whose inliers the rerun narrows."""
     if table == "matches":
         return x.shape == y.shape and bool(np.array_equal(x, y))
-    return (x[0] == y[0] and x[1].shape == y[1].shape and bool(np.array_equal(x[1], y[1]))
-            and _same_matrix(x[2], y[2]) and _same_matrix(x[3], y[3]))
+    same = x[0] == y[0] and _same_matrix(x[2], y[2]) and _same_matrix(x[3], y[3])
+    if x[1].shape == y[1].shape and bool(np.array_equal(x[1], y[1])):
+        return same
+    if pending_pass is None:
+        return False
+    big, small = (x[1], y[1]) if pending_pass == "state" else (y[1], x[1])
+    return same and set(map(tuple, np.asarray(small).tolist())) <= set(map(tuple, np.asarray(big).tolist()))
 
 
 def reordered_pairs(state: dict, ref: dict) -> set:
@@ -253,11 +261,13 @@ def reordered_pairs(state: dict, ref: dict) -> set:
     return out
 
 
-def compare_db(state: dict, ref: dict, *, only=None, features: bool = False, skip=()) -> list[str]:
+def compare_db(state: dict, ref: dict, *, only=None, features: bool = False, skip=(),
+               pending_pass: str | None = None) -> list[str]:
     """Differences of ``state`` from ``ref`` in the match tables (pairs, matches, inlier sets, config, F, H up to
     scale); with ``only`` (pairs) just those pairs of ``state``, which must all be as in ``ref``; ``features``: also
     every image's keypoint and descriptor blobs; ``skip``: pairs whose content is not compared (their presence
-    is)."""
+    is); ``pending_pass`` ("state" / "ref"): that side may hold a superset of the other's inliers in a geometry
+    (the state right after a kill, before the selection passes that follow matching ran on its pairs)."""
     diffs = []
     skip = set(skip)
     if state["error"]:
@@ -269,7 +279,7 @@ def compare_db(state: dict, ref: dict, *, only=None, features: bool = False, ski
         keys = set(got) if only is None else set(got) & set(only)
         if only is None and set(got) != set(want):
             diffs.append(f"{table}: {len(set(got) - set(want))} extra, {len(set(want) - set(got))} missing pairs")
-        bad = [k for k in (keys & set(want)) - skip if not _same_row(table, got[k], want[k])]
+        bad = [k for k in (keys & set(want)) - skip if not _same_row(table, got[k], want[k], pending_pass)]
         extra = keys - set(want)
         if bad:
             diffs.append(f"{table}: {len(bad)} pairs differ from the uninterrupted run (e.g. {sorted(bad)[0]})")

@@ -100,6 +100,9 @@ def report_markdown(report: dict) -> str:
                  + (f" (COLMAP verification {_fmt_s(ma['verify_time_s'])} s)" if report['config']['geometry'] == 'colmap' else "")
                  + (f"; second look at {lk['looked']} weak or rejected pairs: {lk['verified']} newly verified "
                     f"({_fmt_s(lk['time_s'])} s)" if (lk := ma.get("second_look")) else "")
+                 + (f"; the mapper gets those within {ti['max_error_px']:g} px of their pair's F / H (at least "
+                    f"{ti['min_inliers']}: {ti['inliers_before']:,} -> {ti['inliers_after']:,})"
+                    if (ti := ma.get("inlier_px")) else "")
                  + (f"; the mapper gets at most {ic['max_inliers']} per pair ({ic['pairs_capped']} pairs capped "
                     f"this run: {ic['inliers_before']:,} -> {ic['inliers_after']:,})" if (ic := ma.get("inlier_cap")) else "")
                  + " |")

@@ -167,9 +167,9 @@ def check_output(conf: SfmConfig, paths: SfmPaths, project_path: Path, *, matchi
             raise OutputError(f"the features in {paths.database} were extracted with {old.get('extraction')}, not "
                               f"{project['extraction']}; rerun with the same options or use a new output path")
         if matching:
-            # projects from before max_inliers_per_pair handed the mapper every inlier: they read as 0
-            old_matching = ({"max_inliers_per_pair": 0, **old["matching"]} if isinstance(old.get("matching"), dict)
-                            else None)
+            # projects from before max_inliers_per_pair / inlier_px handed the mapper every inlier: they read as 0
+            old_matching = ({"max_inliers_per_pair": 0, "inlier_px": 0.0, **old["matching"]}
+                            if isinstance(old.get("matching"), dict) else None)
             if _num_matched_pairs(paths.database) and old_matching is not None and old_matching != project["matching"]:
                 raise OutputError(f"the pairs in {paths.database} were matched with {old.get('matching')}, not "
                                   f"{project['matching']}; rerun with the same options or use a new output path")
@@ -302,22 +302,25 @@ def second_look_on(wanted: bool | None, geometry: str) -> bool:
 
 def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
                         max_inliers_per_pair: int = 0, expand: dict | None = None,
-                        second_look: dict | None = None) -> dict:
+                        second_look: dict | None = None, inlier_px: float = 0.0) -> dict:
     """The matching stage's work, shared by ``guidedmatch colmap`` and :func:`match_main`: the collection engine over
     ``pairs`` into the COLMAP ``database`` (pairs already there skipped); with ``geometry="colmap"`` pycolmap's
-    verification of the pairs without a geometry; then at most ``max_inliers_per_pair`` inliers per pair for the
-    mapper (0: all). ``expand`` (ExpansionConfig fields): then the verified expansion -- the pairs closing a
-    triangle of verified pairs, in rounds (:func:`guidedmatch.collection.expansion.match_collection_expanded`).
+    verification of the pairs without a geometry; then (``geometry="ours"``, ``inlier_px`` > 0) only the inliers
+    within ``inlier_px`` of their pair's F / H (at least 15: :meth:`~guidedmatch.collection.ColmapSink.tighten_inliers`),
+    then at most ``max_inliers_per_pair`` inliers per pair for the mapper (0: all). ``expand`` (ExpansionConfig
+    fields): then the verified expansion -- the pairs closing a triangle of verified pairs, in rounds
+    (:func:`guidedmatch.collection.expansion.match_collection_expanded`).
     ``second_look`` (SecondLookConfig fields; ``geometry="ours"`` only): then the rejected pairs that verified
     neighbours tie together by enough chained correspondences are matched again with a longer unguided start
     (:func:`guidedmatch.collection.second_look.second_look`).
     Returns ``{"report": CollectionReport, "match_time_s", "verified" (pairs verified by COLMAP
-    now, or None), "verify_time_s", "second_look" (its record or None), "inlier_cap" (the cap's record or None)}``."""
+    now, or None), "verify_time_s", "second_look" (its record or None), "inlier_px" (the tightening's record or
+    None), "inlier_cap" (the cap's record or None)}``."""
     from ..collection.engine import match_collection
     from ..collection.sinks import ColmapSink
 
     t0 = time.perf_counter()
-    verified, t_verify, cap = None, 0.0, None
+    verified, t_verify, cap, tight = None, 0.0, None, None
     with ColmapSink(database, geometry=geometry) as sink:
         if expand is not None:
             from ..collection.expansion import match_collection_expanded
@@ -335,12 +338,28 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
             t1 = time.perf_counter()
             verified = sink.verify()   # COLMAP's default verification, of every pair still without a geometry
             t_verify = time.perf_counter() - t1
+        # our verdict decides at 3 px; the mapper gets the inliers within inlier_px of the pair's model (at least
+        # 15). Idempotent, like the cap: a resumed run leaves the rows already tightened as they are.
+        if inlier_px and geometry == "ours":
+            tight = sink.tighten_inliers(inlier_px, min_inliers=15)
         # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
         # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
         if max_inliers_per_pair:
             cap = sink.cap_inliers(max_inliers_per_pair)
     return {"report": report, "match_time_s": t_match, "verified": verified, "verify_time_s": t_verify,
-            "second_look": look, "inlier_cap": cap}
+            "second_look": look, "inlier_px": tight, "inlier_cap": cap}
+
+
+def describe_tightening(rec: dict) -> str:
+    """One line for the record of :meth:`~guidedmatch.collection.ColmapSink.tighten_inliers`.
+
+    >>> describe_tightening({"max_error_px": 1.5, "min_inliers": 15, "pairs": 10, "pairs_tightened": 9,
+    ...                      "inliers_before": 30000, "inliers_after": 21000, "time_s": 0.5})
+    "mapper's inliers: 21,000 of 30,000 within 1.5 px of their pair's F / H (at least 15 per pair; 9 of 10 pairs tightened)"
+    """
+    return (f"mapper's inliers: {rec['inliers_after']:,} of {rec['inliers_before']:,} within {rec['max_error_px']:g} "
+            f"px of their pair's F / H (at least {rec['min_inliers']} per pair; {rec['pairs_tightened']} of "
+            f"{rec['pairs']} pairs tightened)")
 
 
 #: ``pairs="auto"``: every pair up to this many images, else retrieval pairs + the verified expansion
@@ -403,7 +422,8 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
                                      log_path=str(paths.pair_log))
             done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
                                        max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand,
-                                       second_look={} if second_look_on(conf.second_look, conf.geometry) else None)
+                                       second_look={} if second_look_on(conf.second_look, conf.geometry) else None,
+                                       inlier_px=conf.inlier_px)
         finally:
             source.close()
         pairs = database_pair_stats(paths.database)
@@ -414,6 +434,8 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
         from ..collection.second_look import describe
 
         say(conf, f"      second look: {describe(look)}")
+    if (tight := done["inlier_px"]) is not None:
+        say(conf, f"      {describe_tightening(tight)}")
     cap = done["inlier_cap"]
     if cap is not None:
         say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
@@ -425,7 +447,8 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
         elapsed += early["end_s"] - early["extraction_end_s"]
         record["overlap"] = overlap
     record.update({"time_s": elapsed, "match_time_s": done["match_time_s"], "second_look": look,
-                   "verify_time_s": done["verify_time_s"], "inlier_cap": cap, "pairs": len(pair_list.pairs),
+                   "verify_time_s": done["verify_time_s"], "inlier_px": tight, "inlier_cap": cap,
+                   "pairs": len(pair_list.pairs),
                    "pair_list_report": pair_list.report, "collection": collection,
                    "verified_pairs": sum(p["verified"] for p in pairs),
                    "verified_inliers": sum(p["inliers"] for p in pairs), "raw_matches": sum(p["matches"] for p in pairs)})
