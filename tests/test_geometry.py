@@ -522,3 +522,10 @@ def test_closest_inliers_bad_input():
     for px, k in ((-1.0, 0), (float("nan"), 0), (1.0, -1)):
         with pytest.raises(ConfigError):
             closest_inliers(np.zeros(3), px, k)
+
+
+def test_the_verdicts_floor_is_colmaps_and_the_mappers():
+    """VerdictConfig.min_inliers (written out in its dataclass for the docs' table) is the floor --inlier-px keeps."""
+    from guidedmatch.base import COLMAP_MIN_INLIERS
+
+    assert VerdictConfig().min_inliers == COLMAP_MIN_INLIERS == 15

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..base import DEFAULT_INLIER_PX
+from ..base import COLMAP_MIN_INLIERS, DEFAULT_INLIER_PX
 from ..errors import ConfigError, DatabaseError, InputError, OutputError
 from .hloc_sink import H5MatchesSink, names_to_pair
 from .sink_base import MatchSink, WriteLock, _check_pairs, _check_writable, check_database_space
@@ -334,7 +334,8 @@ class ColmapSink(MatchSink):
                 "pairs_capped": report["pairs_rewritten"], "inliers_before": report["inliers_before"],
                 "inliers_after": report["inliers_after"], "time_s": report["time_s"]}
 
-    def tighten_inliers(self, max_error_px: float = DEFAULT_INLIER_PX, *, min_inliers: int = 15) -> dict:
+    def tighten_inliers(self, max_error_px: float = DEFAULT_INLIER_PX, *,
+                        min_inliers: int = COLMAP_MIN_INLIERS) -> dict:
         """Keep, in every two-view geometry of the database, the inlier matches within ``max_error_px`` of the row's
         own model: the Sampson distance to its F (COLMAP pixels, as the keypoints), or for a planar / panoramic row
         (configuration 4-6) the transfer error of its H; at least the ``min_inliers`` closest (COLMAP's mapper uses
@@ -447,7 +448,7 @@ def cap_two_view_inliers(database_path: str | os.PathLike, max_inliers: int, *, 
 
 
 def tighten_two_view_inliers(database_path: str | os.PathLike, max_error_px: float = DEFAULT_INLIER_PX, *,
-                             min_inliers: int = 15) -> dict:
+                             min_inliers: int = COLMAP_MIN_INLIERS) -> dict:
     """:meth:`ColmapSink.tighten_inliers` on a COLMAP database (under the sink's write lock): every two-view
     geometry keeps its inliers within ``max_error_px`` of its own F / H (at least the ``min_inliers`` closest).
 

@@ -66,6 +66,16 @@ def cap_of(method: str) -> int | None:
     return int(tail) if tail.isdigit() and int(tail) > 0 else None
 
 
+def command_line(argv: list[str]) -> str:
+    """The command as a user types it, from ``guidedmatch bench accuracy ...`` or ``python -m`` this module.
+
+    >>> command_line(["bench", "accuracy", "--scenes", "buddha"]), command_line(["--scenes", "buddha"])
+    ('guidedmatch bench accuracy --scenes buddha', 'guidedmatch bench accuracy --scenes buddha')
+    """
+    argv = list(argv[2:] if argv[:2] == ["bench", "accuracy"] else argv)
+    return " ".join(["guidedmatch bench accuracy", *argv])
+
+
 def _say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
@@ -555,7 +565,8 @@ def main(args) -> int:
     except ValueError:
         raise ConfigError(f"--seeds takes integers, got {args.seeds!r}") from None
     res = run(root, Path(args.out) / "accuracy", scenes, methods, seeds, args.threads, Path(args.cache),
-              redo=tuple(m for m in args.redo.split(",") if m), command="guidedmatch bench accuracy " + " ".join(sys.argv[1:]), repeats=args.repeats or 0, cached_only=args.cached_only)
+              redo=tuple(m for m in args.redo.split(",") if m), command=command_line(sys.argv[1:]),
+              repeats=args.repeats or 0, cached_only=args.cached_only)
     print(markdown_table(res["rows"]))
     return 0
 

@@ -341,7 +341,7 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
         # our verdict decides at 3 px; the mapper gets the inliers within inlier_px of the pair's model (at least
         # 15). Idempotent, like the cap: a resumed run leaves the rows already tightened as they are.
         if inlier_px and geometry == "ours":
-            tight = sink.tighten_inliers(inlier_px, min_inliers=15)
+            tight = sink.tighten_inliers(inlier_px)   # at least COLMAP_MIN_INLIERS (15) per pair
         # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
         # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
         if max_inliers_per_pair:
