@@ -205,3 +205,59 @@ def test_faiss_imported_first_warns_exactly_when_its_kernels_are_generic():
     assert bool(out["warned"]) == out["blas"]["generic"]
     if out["warned"]:
         assert out["blas"]["core"] in out["warned"][0]
+
+
+@pytest.mark.parametrize("plain", [False, True])
+def test_sigterm_after_pycolmap_ends_the_process_without_a_stack_dump_exactly_when_plain(plain):
+    """pycolmap's import installs glog's SIGTERM handler (a ~20-line "*** SIGTERM received ... stack trace"):
+    plain_sigterm() restores the default action -- the process ends by the signal, nothing printed."""
+    code = textwrap.dedent(f"""
+        import os, signal, time
+        import pycolmap
+        from guidedmatch import _runtime
+        if {plain}:
+            _runtime.plain_sigterm()
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == -15, (r.returncode, r.stderr[-2000:])
+    assert ("SIGTERM" in r.stderr) != plain, r.stderr[-2000:]
+
+
+def test_the_pycolmap_commands_end_quietly_on_sigterm(tmp_path):
+    """`guidedmatch colmap` (one of PYCOLMAP_COMMANDS) stopped by SIGTERM mid-run, as a job scheduler or `timeout`
+    does: it ends at once by the signal, with no stack dump, and the database holds only complete pairs."""
+    import os
+    import signal
+    import time
+    from pathlib import Path
+
+    import pycolmap
+
+    from guidedmatch.collection.sources import images_to_database
+    from guidedmatch.testing.multiview import make_multiview, write_views
+
+    mv = make_multiview(6, (320, 240), seed=5, isolated=False)
+    write_views(mv, tmp_path / "img")
+    images_to_database(tmp_path / "img", tmp_path / "db.db", detector="sift", max_features=800, progress=False)
+    log = tmp_path / "log.jsonl"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    proc = subprocess.Popen([sys.executable, "-m", "guidedmatch.cli", "colmap", str(tmp_path / "db.db"),
+                             "--workers", "0", "--threads", "1", "--log", str(log), "--no-progress"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if log.exists() and log.read_text().count('"event": "pair"') >= 1:
+            break
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGTERM)
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == -15, (proc.returncode, err[-2000:])
+    assert "SIGTERM" not in err and "stack trace" not in err, err[-2000:]
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    try:
+        pids = {int(p) for p in db.read_num_matches()[0]}
+        assert all(db.exists_two_view_geometry(*pycolmap.pair_id_to_image_pair(p)) for p in pids)
+    finally:
+        db.close()

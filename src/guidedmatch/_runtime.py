@@ -73,6 +73,22 @@ def without_numba_blas_probe():
         sys.meta_path.remove(finder)
 
 
+def plain_sigterm() -> None:
+    """SIGTERM ends the process at once, without a stack dump: importing pycolmap installs glog's failure signal
+    handler for SIGTERM too, which prints ~20 lines of "*** SIGTERM received ... stack trace" (a crash, to a user whose
+    job scheduler or ``timeout`` stopped the run) and symbolizes inside the handler, where it can deadlock (1 of 60
+    processes signalled while importing never ended). The default action is what ``kill -9`` does to our files:
+    every stored pair complete, a rerun resumes. Main thread only (``signal.signal`` elsewhere raises); pycolmap is
+    imported first, so that its import cannot install the handler again afterwards. For our own processes (the
+    CLI's commands, our worker processes), not for a library user's."""
+    import signal
+
+    if threading.current_thread() is threading.main_thread():
+        import pycolmap  # noqa: F401 - its import installs the handler replaced here
+
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def freeze_gc_at_exit() -> None:
     """Make this process's interpreter shutdown cheap: ``gc.freeze()`` as an exit handler (registered once).
 

@@ -18,7 +18,7 @@ import errno
 import sys
 
 from .. import __version__
-from .._runtime import freeze_gc_at_exit, mark_own_process
+from .._runtime import freeze_gc_at_exit, mark_own_process, plain_sigterm
 from ..errors import GuidedMatchError
 from . import bench, collection, pairs, sfm
 from .common import fallback_lines, jit_summary, matcher_config, parse_kv, timed_match, to_json
@@ -47,6 +47,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: the commands that load pycolmap (and with it glog's SIGTERM handler, replaced by :func:`plain_sigterm`)
+PYCOLMAP_COMMANDS = frozenset({"extract", "map", "sfm", "colmap", "bench"})
+
+
 def _os_error_line(exc: OSError) -> str:
     where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
     return f"{exc.strerror or exc}" + (f": {where}" if where else "")
@@ -61,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
+    if args.command in PYCOLMAP_COMMANDS:
+        plain_sigterm()   # SIGTERM (a job scheduler, timeout): end at once, no glog stack dump (guidedmatch._runtime)
     try:
         return int(args.func(args) or 0)
     except GuidedMatchError as exc:  # the user's input or configuration: one line, exit 2

@@ -248,7 +248,10 @@ def _work(task: tuple) -> dict:
 def _init_worker(log_level: int) -> None:
     import pycolmap
 
+    from .._runtime import plain_sigterm
+
     pycolmap.logging.minloglevel = log_level   # COLMAP's log level of the parent (its INFO lines silenced or not)
+    plain_sigterm()   # the pool's SIGTERM ends a worker at once (no glog stack dump, no deadlock in its handler)
 
 
 def _megapixels(paths) -> float:
