@@ -164,6 +164,21 @@ def warm_up(cache: Path, mdir: Path) -> None:
 OURS_FLAGS = ("second_look", "no_second_look")   # ours@...;no_second_look: `guidedmatch colmap --no-second-look`, not a matcher setting
 
 
+def ours_words(method: str) -> list[str]:
+    """The ``guidedmatch colmap`` words of an ``ours@...`` method (";" between several settings): a flag of
+    :data:`OURS_FLAGS` as itself, ``inlier_px=X`` as ``--inlier-px X`` (an option of the command), anything else a
+    matcher ``--config``.
+
+    >>> ours_words("ours@inlier_px=0;second_look;max_unguided=0.1")
+    ['--inlier-px', '0', '--second-look', '--config', 'max_unguided=0.1']
+    """
+    words = []
+    for kv in (kv for kv in method[len("ours@"):].split(";") if kv):
+        words += ([f"--{kv.replace('_', '-')}"] if kv in OURS_FLAGS else
+                  ["--inlier-px", kv.split("=", 1)[1]] if kv.startswith("inlier_px=") else ["--config", kv])
+    return words
+
+
 def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
     """Stage 2, cached: ``cache/<method>/database.db`` + ``match.json``."""
     mdir = cache / method.replace("+", "_")
@@ -196,15 +211,10 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
     elif method.startswith("ours@"):   # ours with matcher settings: ours@max_unguided=0.1 (guidedmatch colmap --config), ";" between several
         copy_database(cache / "features.db", db)
         warm_up(cache, mdir)
-        items = [kv for kv in method[5:].split(";") if kv]   # ours@a=1;b=2: several settings
-        # each setting as CLI words: ours@second_look is a flag (--second-look), anything else a matcher --config
-        # ours@inlier_px=0: a `guidedmatch colmap` option (--inlier-px 0), not a matcher setting
-        words = [[f"--{kv.replace('_', '-')}"] if kv in OURS_FLAGS else
-                 ["--inlier-px", kv.split("=", 1)[1]] if kv.startswith("inlier_px=") else ["--config", kv]
-                 for kv in items]
+        words = ours_words(method)
         t = _timed_process([sys.executable, "-c", OURS_MATCH_SCRIPT, "colmap", str(db), "--no-progress", "--log", "none",
-                            *(w for ws in words for w in ws)], mdir / "match.log")
-        rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(" ".join(ws) for ws in words)}
+                            *words], mdir / "match.log")
+        rec = {"method": method, "match_s": t, "command": "guidedmatch colmap DB " + " ".join(words)}
     elif method in ("ours+rescue", "ours+rescue+cap"):
         base = match("ours", cache, threads)
         copy_database(cache / "ours" / "database.db", db)
@@ -510,7 +520,7 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
                   "ours+rescue+cap": "ours+rescue, then the cap",
                   **{m: f"guidedmatch colmap DB --max-inliers-per-pair {cap_of(m)} (another cap)"
                      for m in (r["method"] for r in allrows) if cap_of(m) and m != "ours+cap"},
-                  **{m: f"guidedmatch colmap DB --config {m[5:]}" for m in (r["method"] for r in allrows)
+                  **{m: "guidedmatch colmap DB " + " ".join(ours_words(m)) for m in (r["method"] for r in allrows)
                      if m.startswith("ours@")},
                   **{k: f"analysis, not a method: {v[1]} (matching time: the base's)" for k, v in VARIANTS.items()}}
         md += ["", "Methods:", ""] + [f"* `{m}`: {legend.get(m, '')}" for m in dict.fromkeys(r["method"] for r in allrows)]
