@@ -205,7 +205,7 @@ def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict
 
 def cmd_colmap(args) -> int:
     from ..collection.sources import ColmapSource
-    from ..sfm.stages import match_into_database, second_look_on
+    from ..sfm.stages import describe_tightening, match_into_database, second_look_on
 
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
@@ -227,9 +227,7 @@ def cmd_colmap(args) -> int:
     if done["verified"] is not None:
         print(f"verified   : {done['verified']} pairs with COLMAP's geometric verification (pycolmap.verify_matches)")
     if (tight := done["inlier_px"]) is not None:
-        print(f"mapper     : {tight['inliers_after']:,} of {tight['inliers_before']:,} inliers within "
-              f"{tight['max_error_px']:g} px of their pair's F / H (at least {tight['min_inliers']} per pair; "
-              f"{tight['pairs_tightened']} pairs tightened, {tight['time_s']:.2f} s)")
+        print(f"mapper     : {describe_tightening(tight)}")
     if (cap := done["inlier_cap"]) is not None:
         print(f"mapper     : {cap['inliers_after']:,} of {cap['inliers_before']:,} inliers kept (at most "
               f"{cap['max_inliers']} per pair, spread; {cap['pairs_capped']} pairs capped, {cap['time_s']:.2f} s)")

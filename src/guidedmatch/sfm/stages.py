@@ -355,11 +355,11 @@ def describe_tightening(rec: dict) -> str:
 
     >>> describe_tightening({"max_error_px": 1.5, "min_inliers": 15, "pairs": 10, "pairs_tightened": 9,
     ...                      "inliers_before": 30000, "inliers_after": 21000, "time_s": 0.5})
-    "mapper's inliers: 21,000 of 30,000 within 1.5 px of their pair's F / H (at least 15 per pair; 9 of 10 pairs tightened)"
+    "21,000 of 30,000 inliers within 1.5 px of their pair's F / H (at least 15 per pair; 9 of 10 pairs tightened, 0.50 s)"
     """
-    return (f"mapper's inliers: {rec['inliers_after']:,} of {rec['inliers_before']:,} within {rec['max_error_px']:g} "
-            f"px of their pair's F / H (at least {rec['min_inliers']} per pair; {rec['pairs_tightened']} of "
-            f"{rec['pairs']} pairs tightened)")
+    return (f"{rec['inliers_after']:,} of {rec['inliers_before']:,} inliers within {rec['max_error_px']:g} px of "
+            f"their pair's F / H (at least {rec['min_inliers']} per pair; {rec['pairs_tightened']} of {rec['pairs']} "
+            f"pairs tightened, {rec['time_s']:.2f} s)")
 
 
 #: ``pairs="auto"``: every pair up to this many images, else retrieval pairs + the verified expansion
@@ -435,7 +435,7 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
 
         say(conf, f"      second look: {describe(look)}")
     if (tight := done["inlier_px"]) is not None:
-        say(conf, f"      {describe_tightening(tight)}")
+        say(conf, f"      mapper's inliers: {describe_tightening(tight)}")
     cap = done["inlier_cap"]
     if cap is not None:
         say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
