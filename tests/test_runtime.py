@@ -261,3 +261,23 @@ def test_the_pycolmap_commands_end_quietly_on_sigterm(tmp_path):
         assert all(db.exists_two_view_geometry(*pycolmap.pair_id_to_image_pair(p)) for p in pids)
     finally:
         db.close()
+
+
+@pytest.mark.parametrize("opt_out", [False, True])
+def test_the_command_line_reexecutes_itself_with_huge_pages_exactly_when_they_apply(opt_out):
+    """reexec_with_hugepages (what the CLI's main() does first when run as a program) starts the same command again
+    with GLIBC_TUNABLES=glibc.malloc.hugetlb=1 where hugepage_env applies to this machine, and not at all with
+    GUIDEDMATCH_HUGEPAGES=0 or where it does not apply; the arguments arrive unchanged."""
+    import os
+
+    from guidedmatch._runtime import hugepage_env
+
+    code = ("import os, sys; from guidedmatch import _runtime; _runtime.reexec_with_hugepages(); "
+            "print(os.environ.get('GLIBC_TUNABLES'), sys.argv[1:])")
+    env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", "GUIDEDMATCH_HUGEPAGES")}
+    if opt_out:
+        env["GUIDEDMATCH_HUGEPAGES"] = "0"
+    r = subprocess.run([sys.executable, "-c", code, "a", "b c"], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    expected = None if opt_out or hugepage_env(env) is None else "glibc.malloc.hugetlb=1"
+    assert r.stdout.strip() == f"{expected} ['a', 'b c']"

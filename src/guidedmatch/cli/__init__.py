@@ -18,7 +18,7 @@ import errno
 import sys
 
 from .. import __version__
-from .._runtime import freeze_gc_at_exit, mark_own_process, plain_sigterm
+from .._runtime import freeze_gc_at_exit, mark_own_process, plain_sigterm, reexec_with_hugepages
 from ..errors import GuidedMatchError
 from . import bench, collection, pairs, sfm
 from .common import fallback_lines, jit_summary, matcher_config, parse_kv, timed_match, to_json
@@ -57,6 +57,8 @@ def _os_error_line(exc: OSError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:   # the command line's own process (not main([...]) from Python): huge pages for malloc
+        reexec_with_hugepages()   # returns when they do not apply (guidedmatch._runtime.hugepage_env)
     freeze_gc_at_exit()  # a cheap interpreter shutdown (guidedmatch._runtime)
     mark_own_process()   # Numba's set-up may skip its SciPy BLAS probe (guidedmatch._runtime)
     parser = build_parser()

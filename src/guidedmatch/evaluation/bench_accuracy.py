@@ -125,7 +125,7 @@ import sys, pycolmap
 mo = pycolmap.FeatureMatchingOptions(); mo.num_threads = int(sys.argv[2]); mo.use_gpu = False
 pycolmap.match_exhaustive(sys.argv[1], matching_options=mo, device=pycolmap.Device.cpu)
 """
-OURS_MATCH_SCRIPT = "import sys; from guidedmatch.cli import main; sys.exit(main(sys.argv[1:]))"
+OURS_MATCH_SCRIPT = "import sys; from guidedmatch.cli import main; sys.exit(main())"   # as the console script
 
 
 def _timed_process(cmd: list[str], log: Path) -> float:

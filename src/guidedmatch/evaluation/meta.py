@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 THREAD_ENV_VARS = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-                   "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+                   "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS",
+                   "GLIBC_TUNABLES")   # glibc.malloc.hugetlb=1: the command line's huge pages (_runtime.hugepage_env)
 
 
 def _repo_root() -> Path:
