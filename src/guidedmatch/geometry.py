@@ -582,8 +582,10 @@ def closest_inliers(errors, max_error: float, min_keep: int = 0) -> np.ndarray:
         from .errors import ConfigError
 
         raise ConfigError(f"closest_inliers: max_error must be >= 0 and min_keep >= 0; got {max_error}, {min_keep}")
+    if len(e) <= k:
+        return np.arange(len(e))
     within = np.flatnonzero(e <= max_error)
-    if len(within) >= k or len(e) <= k:
-        return within if len(e) > k else np.arange(len(e))
+    if len(within) >= k:
+        return within
     order = np.lexsort((np.arange(len(e)), np.nan_to_num(e, nan=np.inf)))
     return np.sort(order[:k])
