@@ -57,8 +57,7 @@ def _os_error_line(exc: OSError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:   # the command line's own process (not main([...]) from Python): huge pages for malloc
-        reexec_with_hugepages()   # returns when they do not apply (guidedmatch._runtime.hugepage_env)
+    own_process = argv is None   # the command line's own process, not main([...]) from Python
     freeze_gc_at_exit()  # a cheap interpreter shutdown (guidedmatch._runtime)
     mark_own_process()   # Numba's set-up may skip its SciPy BLAS probe (guidedmatch._runtime)
     parser = build_parser()
@@ -67,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
+    if own_process:   # a command will run: huge pages for malloc -- after parsing, so that --help, --version and
+        reexec_with_hugepages()   # a mistyped option do not pay a second start (returns when they do not apply)
     if args.command in PYCOLMAP_COMMANDS:
         plain_sigterm()   # SIGTERM (a job scheduler, timeout): end at once, no glog stack dump (guidedmatch._runtime)
     try:
