@@ -421,6 +421,57 @@ def _similarity_reference(a1, a2, s1, s2, ref, deg, octaves):
     return np.array(keep, bool)
 
 
+def _cell_reference(lr, ref, xy, size, grid, min_cell):
+    """Slow reference of the local scale reference: each correspondence's cell, its reference values, their median."""
+    w, h = size
+    glob = float(np.median(lr[ref]))
+    out = []
+    for x, y in xy:
+        cx, cy = min(max(int(x / w * grid), 0), grid - 1), min(max(int(y / h * grid), 0), grid - 1)
+        vals = [v for v, r, (u, t) in zip(lr, ref, xy)
+                if r and min(max(int(u / w * grid), 0), grid - 1) == cx and min(max(int(t / h * grid), 0), grid - 1) == cy]
+        out.append(float(np.median(vals)) if len(vals) >= min_cell else glob)
+    return np.array(out)
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float64, st.integers(1, 60), elements=st.floats(-3, 3)), st.integers(0, 2**31 - 1),
+       st.integers(1, 5), st.integers(1, 6))
+def test_local_scale_reference_equals_a_per_cell_loop(lr, seed, grid, min_cell):
+    from guidedmatch.geometry import _scale_reference
+
+    rng = np.random.default_rng(seed)
+    m = len(lr)
+    xy = rng.uniform(-5, 105, (m, 2))       # some outside the image: clipped into the border cells
+    ref = rng.random(m) < 0.7
+    ref[0] = True
+    got = _scale_reference(lr, ref, (xy, (100, 80)), grid, min_cell)
+    np.testing.assert_allclose(got, _cell_reference(lr, ref, xy, (100, 80), grid, min_cell), rtol=0, atol=1e-12)
+
+
+def test_local_frame_check_follows_depth_and_still_drops_twins():
+    """A close-range scene: the scale changes by +1.2 octaves on the left half of image 1 (near) and by 0 on the
+    right (far). Against the pair's median a 0.5-octave check drops one side's true correspondences and keeps the
+    twins on the left whose scale changed like the far side's; against its cell's median (grid 4) it keeps every
+    true one and drops the twins."""
+    from guidedmatch.geometry import consistent_similarity
+
+    rng = np.random.default_rng(1)
+    n = 400
+    xy = np.c_[rng.uniform(0, 100, n), rng.uniform(0, 80, n)]
+    near = xy[:, 0] < 50
+    s1 = rng.uniform(2, 10, n)
+    lr = np.where(near, 1.2, 0.0) + rng.normal(0, 0.05, n)
+    twins = near & (np.arange(n) % 10 == 0)
+    lr[twins] = 0.0
+    s2 = s1 * 2.0 ** lr
+    a = np.zeros(n)
+    glob = consistent_similarity(a, a, s1, s2, np.ones(n, bool), None, 0.5)
+    loc = consistent_similarity(a, a, s1, s2, np.ones(n, bool), None, 0.5, positions=(xy, (100, 80)), grid=4)
+    assert glob[~twins].mean() < 0.6 and glob[twins].mean() > 0.9  # one side dropped, twins kept
+    assert loc[~twins].all() and not loc[twins].any()
+
+
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.integers(1, 40), st.none() | st.floats(5.0, 90.0), st.floats(0.25, 2.0))
 def test_consistent_similarity_equals_reference(seed, m, deg, octaves):

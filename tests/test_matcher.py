@@ -692,13 +692,9 @@ def test_flags_and_stats_are_the_same_shape_in_every_mode(scene_and_features):
         assert sum(r.stats.phase_queries) == len(f1)
 
 
-def test_planar_rule_keeps_the_matches_off_a_dominant_plane():
-    """planar_recheck drops guided matches off the verdict's H only when the final matches still look planar (H
-    inliers >= h_ratio * F inliers): a 3-D scene with a dominant plane keeps its off-plane matches."""
-    from types import SimpleNamespace
-
-    from guidedmatch.matcher.filters import _planar
-
+def _dominant_plane_scene():
+    """Two views of 200 points, 60 % on the plane z = 5, the rest at depths 3-12: ``(x1, x2, F, H, n_h, on)`` with
+    the true F, the plane's homography H and the number of points within 3 px of it."""
     rng = np.random.default_rng(0)
     K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
     a = np.radians(5.0)
@@ -715,10 +711,44 @@ def test_planar_rule_keeps_the_matches_off_a_dominant_plane():
     H = K @ (R + np.outer(t, [0, 0, 1.0]) / 5.0) @ np.linalg.inv(K)  # the plane n = (0,0,1), d = 5
     p = np.c_[x1, np.ones(n)] @ H.T
     n_h = int((np.linalg.norm(p[:, :2] / p[:, 2:] - x2, axis=1) <= 3.0).sum())
+    return x1, x2, F, H, n_h, on
+
+
+def test_planar_rule_keeps_the_matches_off_a_dominant_plane():
+    """planar_recheck drops guided matches off the verdict's H only when the final matches still look planar (H
+    inliers >= h_ratio * F inliers): a 3-D scene with a dominant plane keeps its off-plane matches."""
+    from types import SimpleNamespace
+
+    from guidedmatch.matcher.filters import _planar
+
+    x1, x2, F, H, n_h, on = _dominant_plane_scene()
+    n = len(x1)
     assert on.sum() <= n_h < 0.7 * n  # the homography is the plane's (a few off-plane points lie near it)
     assert not _planar(SimpleNamespace(num_inliers=n_h), F, x1, x2)  # F explains all: a 3-D scene
     assert _planar(SimpleNamespace(num_inliers=n_h), F, x1[on], x2[on])  # the plane alone
     assert _planar(SimpleNamespace(num_inliers=n_h), None, x1, x2)  # no F to compare with
+
+
+def test_an_H_verdict_on_a_scene_that_is_not_planar_is_reported_as_F():
+    """nonplanar_as_F: the dominant-plane scene above, verified as "H" (its plane's homography), is reported as "F"
+    with the F inliers -- the off-plane points included, every one of them (noise-free) -- the homography kept; a
+    planar scene is not touched (the run calls reported_as_fundamental only when _planar is False)."""
+    from guidedmatch.geometry import TwoViewGeometry, reported_as_fundamental, transfer_error
+
+    x1, x2, F, H, n_h, _ = _dominant_plane_scene()
+    inl_h = transfer_error(H, x1, x2) <= 3.0
+    g = TwoViewGeometry("verified", "H", None, H, inl_h, int(inl_h.sum()), len(x1), "H verified")
+    r = reported_as_fundamental(g, F, x1, x2)
+    assert r.verdict == "verified" and r.model == "F" and r.colmap_config == 3 and r.H is H
+    assert r.num_inliers == len(x1) > n_h and r.inliers.all()
+    assert r.evidence["reported_from"] == "H" and r.evidence["reported_H_inliers"] == n_h
+    with pytest.raises(ValueError):
+        reported_as_fundamental(r, F, x1, x2)  # only a verified "H" is re-reported
+    from guidedmatch.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        MatcherConfig(nonplanar_as_F="yes")
+    assert MatcherConfig().nonplanar_as_F and not MatcherConfig.paper().nonplanar_as_F
 
 
 # ------------------------------------------------------------------------------------- frame hypotheses

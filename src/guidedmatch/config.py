@@ -104,16 +104,24 @@ class MatcherConfig:
                                          # rotation: F and its band constrain nothing along the plane) and the final
                                          # matches still look planar (H inliers >= h_ratio * F inliers), drop the guided
                                          # matches that are not its inliers (Oxford wall 1-2: 2.2 % -> 0.6 % wrong)
+    nonplanar_as_F: bool = True          # beyond the paper: an "H" verdict whose final matches are not planar by COLMAP's
+                                         # rule (H inliers < h_ratio * F inliers of the final F) is reported as "F" with
+                                         # the F inliers, the off-plane ones included, as COLMAP's verification does
+                                         # (fox: 448 of 689 "H" pairs, their off-plane inliers are the depth cues)
     frame_check: bool = True             # beyond the paper: drop the matches of a verified pair whose keypoint scale change
                                          # (and rotation, with frame_check_deg) disagrees with the pair's (the verified
                                          # inliers' median log-scale ratio, circular mean rotation): a repeated
                                          # structure's twin in the epipolar band passes F but not its frame
-                                         # (geometry.consistent_similarity). Scale only, 0.5 octave: buddha 0.230 ->
+                                         # (geometry.consistent_similarity). Scale only; at 0.5 octave of the pair median: buddha 0.230 ->
                                          # 0.223 deg (COLMAP 0.217), wrong inliers 6.2 % -> 3.2 % with the second look
                                          # (benchmarks/results/accuracy)
     frame_check_deg: float | None = None  # frame_check: largest rotation difference from the pair's, degrees; None:
                                          # the rotation is not checked (scale only)
-    frame_check_octaves: float = 0.5     # frame_check: largest |log2 scale ratio| difference from the pair's
+    frame_check_octaves: float = 0.75    # frame_check: largest |log2 scale ratio| difference from the reference (0.5 with
+                                         # the pair's median was the default until 2026-12-04)
+    frame_check_grid: int = 6            # frame_check: the reference is the median of the pair's inliers in the same cell of
+                                         # a G x G grid over image 1 -- the scale change follows depth (fox 0.504 -> 0.467
+                                         # deg, buddha 0.211 -> 0.209, COLMAP 0.473 / 0.214); 0: the pair's median
     frame_check_scope: Literal["all", "guided"] = "all"  # frame_check: every match, or only the guided ones (the
                                          # unguided ones passed the ratio test against all of image 2, as in BF)
     outside_window: Literal["drop", "band"] = "band"  # image-1 feature outside the SO window ω*: "drop" (paper
@@ -180,10 +188,12 @@ class MatcherConfig:
         check_number(o, "strip_px", self.strip_px, lo=0, lo_open=True, allow_none=True)
         check_bool(o, "recheck", self.recheck)
         check_bool(o, "planar_recheck", self.planar_recheck)
+        check_bool(o, "nonplanar_as_F", self.nonplanar_as_F)
         check_bool(o, "frame_check", self.frame_check)
         if self.frame_check_deg is not None:
             check_number(o, "frame_check_deg", self.frame_check_deg, lo=0, hi=180, lo_open=True)
         check_number(o, "frame_check_octaves", self.frame_check_octaves, lo=0, lo_open=True)
+        check_number(o, "frame_check_grid", self.frame_check_grid, lo=0, hi=64, integer=True)
         check_choice(o, "frame_check_scope", self.frame_check_scope, ("all", "guided"))
         check_choice(o, "outside_window", self.outside_window, ("drop", "band"))
         check_number(o, "min_model_matches", self.min_model_matches, lo=8, integer=True)
@@ -208,7 +218,7 @@ class MatcherConfig:
         printed alignment (c), the first model after ``update_every`` unguided correspondences (exact search, no
         verdict gate, no early exit), no automatic brute force, matches kept whatever the verdict. The two-view
         verdict is still reported."""
-        return cls(**{"recheck": False, "planar_recheck": False, "frame_check": False, "outside_window": "drop", "one_to_one": False, "alignment": "c",
+        return cls(**{"recheck": False, "planar_recheck": False, "nonplanar_as_F": False, "frame_check": False, "outside_window": "drop", "one_to_one": False, "alignment": "c",
                       "start": "paper", "auto_bf": False, "unverified": "keep", **overrides})
 
     def replace(self, **changes) -> "MatcherConfig":

@@ -317,14 +317,21 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
         final_F = models.F if models is not None and models.F is not None else None
         geometry = report_geometry(self.decision, x1, x2, F=final_F, config=VerdictConfig(seed=self.c.seed))
         dropped_planar = 0
-        planar = self.c.planar_recheck and geometry and geometry.model == "H" and len(q)
-        if planar and _planar(geometry, final_F, x1, x2):
+        homography = bool(geometry) and geometry.model == "H" and len(q) > 0
+        planar = homography and _planar(geometry, final_F, x1, x2)
+        if planar and self.c.planar_recheck:
             # a planar scene (or pure rotation): the epipolar band of an F fitted to it constrains nothing along the
             # plane, the verified homography does -- guided matches off it are dropped (unguided ones stay, as in BF)
             keep = (flags["phase"] == 0) | geometry.inliers
             dropped_planar = int((~keep).sum())
             if dropped_planar:
                 q, j, d, flags, geometry = _kept(keep, q, j, d, flags, geometry)
+        elif homography and not planar and self.c.nonplanar_as_F:
+            # "H" decided on a few correspondences of a 3-D scene with a dominant plane: the final matches are not
+            # planar by COLMAP's rule, so the pair is reported as F with the F inliers (off the plane included)
+            from ..geometry import reported_as_fundamental
+
+            geometry = reported_as_fundamental(geometry, final_F, x1, x2, VerdictConfig(seed=self.c.seed))
         dropped_frames = 0
         f1, f2 = self.f1, self.f2
         if (self.c.frame_check and geometry and len(q) and f1.angles is not None and f2.angles is not None
@@ -335,7 +342,9 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
 
             same = consistent_similarity(np.asarray(f1.angles)[q], np.asarray(f2.angles)[j],
                                          np.asarray(f1.scales)[q], np.asarray(f2.scales)[j], geometry.inliers,
-                                         self.c.frame_check_deg, self.c.frame_check_octaves)
+                                         self.c.frame_check_deg, self.c.frame_check_octaves,
+                                         positions=(f1.keypoints[q], f1.image_size),
+                                         grid=self.c.frame_check_grid)
             keep = same | (flags["phase"] == 0) if self.c.frame_check_scope == "guided" else same
             dropped_frames = int((~keep).sum())
             if dropped_frames:
