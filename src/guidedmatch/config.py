@@ -117,11 +117,11 @@ class MatcherConfig:
                                          # (benchmarks/results/accuracy)
     frame_check_deg: float | None = None  # frame_check: largest rotation difference from the pair's, degrees; None:
                                          # the rotation is not checked (scale only)
-    frame_check_octaves: float = 0.75    # frame_check: largest |log2 scale ratio| difference from the reference (0.5 with
-                                         # the pair's median was the default until 2026-12-04)
+    frame_check_octaves: float = 0.5     # frame_check: largest |log2 scale ratio| difference from the reference (0.75: fox
+                                         # 0.480 deg but Herz-Jesus-P8 0.207 -> 0.217, COLMAP 0.214)
     frame_check_grid: int = 6            # frame_check: the reference is the median of the pair's inliers in the same cell of
-                                         # a G x G grid over image 1 -- the scale change follows depth (fox 0.504 -> 0.467
-                                         # deg, buddha 0.211 -> 0.209, COLMAP 0.473 / 0.214); 0: the pair's median
+                                         # a G x G grid over image 1 -- the scale change follows depth (buddha 0.211 ->
+                                         # 0.205 deg, P25 0.366 -> 0.361, COLMAP 0.214 / 0.381); 0: the pair's median
     frame_check_scope: Literal["all", "guided"] = "all"  # frame_check: every match, or only the guided ones (the
                                          # unguided ones passed the ratio test against all of image 2, as in BF)
     outside_window: Literal["drop", "band"] = "band"  # image-1 feature outside the SO window ω*: "drop" (paper
