@@ -112,9 +112,9 @@ class MatcherConfig:
                                          # (and rotation, with frame_check_deg) disagrees with the pair's (the verified
                                          # inliers' median log-scale ratio, circular mean rotation): a repeated
                                          # structure's twin in the epipolar band passes F but not its frame
-                                         # (geometry.consistent_similarity). Scale only; at 0.5 octave of the pair median: buddha 0.230 ->
-                                         # 0.223 deg (COLMAP 0.217), wrong inliers 6.2 % -> 3.2 % with the second look
-                                         # (benchmarks/results/accuracy)
+                                         # (geometry.consistent_similarity). Scale only; against the pair's median at
+                                         # 0.5 octave: buddha 0.230 -> 0.223 deg (COLMAP 0.217), wrong inliers 6.2 % ->
+                                         # 3.2 % with the second look (benchmarks/results/accuracy)
     frame_check_deg: float | None = None  # frame_check: largest rotation difference from the pair's, degrees; None:
                                          # the rotation is not checked (scale only)
     frame_check_octaves: float = 0.5     # frame_check: largest |log2 scale ratio| difference from the reference (0.75: fox
