@@ -156,7 +156,7 @@ def extract_and_match(conf: SfmConfig, paths: SfmPaths, names: list[str], spec: 
         before_counts = _db_image_names(paths.database) if paths.database.exists() else {}
         todo = [n for n in names if before_counts.get(n, 0) == 0]
         workers = max(1, (os.cpu_count() or 1) if conf.num_threads == -1 else conf.num_threads)
-        cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=0, progress=False,
+        cconf = CollectionConfig(mode=conf.mode, matcher=conf.matcher_for(len(names)), workers=0, progress=False,
                                  log_path=str(paths.pair_log))
         from ..collection.planning import _usable_cores
 

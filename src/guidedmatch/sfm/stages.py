@@ -417,7 +417,7 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
             # after an overlap, usually nothing is left for this pass: no empty progress bar then
             left = (todo if early is None else
                     [p for p in todo if frozenset(p) not in {frozenset(q) for q in early["oriented"]}])
-            cconf = CollectionConfig(mode=conf.mode, matcher=dict(conf.matcher or {}), workers=conf.workers,
+            cconf = CollectionConfig(mode=conf.mode, matcher=conf.matcher_for(len(usable)), workers=conf.workers,
                                      scheduler=conf.scheduler, progress=conf.progress and bool(left),
                                      log_path=str(paths.pair_log))
             done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
