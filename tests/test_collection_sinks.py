@@ -614,7 +614,8 @@ def test_cap_inliers_bad_input_and_lock(db_copy):
 
 def _tighten_reference(path, key, config, F, H, inl, px, min_keep):
     """The inliers tightening keeps, computed slowly: each correspondence's Sampson distance to the row's F (or
-    transfer error of its H for a planar row) one at a time from the raw COLMAP keypoints, then a plain sort."""
+    transfer error of its H for a planar row, or its Sampson distance to the row's F when smaller) one at a time
+    from the raw COLMAP keypoints, then a plain sort."""
     db = pycolmap.Database.open(str(path))
     try:
         kp1, kp2 = (np.asarray(db.read_keypoints(i))[:, :2].astype(np.float64) for i in key)
@@ -623,12 +624,16 @@ def _tighten_reference(path, key, config, F, H, inl, px, min_keep):
     errs = []
     for a, b in inl:
         x1, x2 = np.r_[kp1[a], 1.0], np.r_[kp2[b], 1.0]
+        sampson = None
+        if F is not None and np.any(F):
+            l2, l1 = F @ x1, F.T @ x2
+            sampson = abs(float(x2 @ F @ x1)) / np.sqrt(l2[0] ** 2 + l2[1] ** 2 + l1[0] ** 2 + l1[1] ** 2)
         if config in (4, 5, 6):
             y = H @ x1
-            errs.append(float(np.hypot(y[0] / y[2] - x2[0], y[1] / y[2] - x2[1])))
+            transfer = float(np.hypot(y[0] / y[2] - x2[0], y[1] / y[2] - x2[1]))
+            errs.append(transfer if sampson is None else min(transfer, sampson))
         else:
-            l2, l1 = F @ x1, F.T @ x2
-            errs.append(abs(float(x2 @ F @ x1)) / np.sqrt(l2[0] ** 2 + l2[1] ** 2 + l1[0] ** 2 + l1[1] ** 2))
+            errs.append(sampson)
     if len(inl) <= min_keep:
         return inl
     within = [k for k, e in enumerate(errs) if e <= px]
@@ -637,10 +642,10 @@ def _tighten_reference(path, key, config, F, H, inl, px, min_keep):
     return inl[within]
 
 
-@pytest.mark.parametrize("px", [0.5, 1.5])
-def test_tighten_inliers_keeps_those_within_px_of_the_rows_model(tmp_path, px):
+@pytest.mark.parametrize("px, planar_F", [(0.5, False), (1.5, False), (1.5, True)])
+def test_tighten_inliers_keeps_those_within_px_of_the_rows_model(tmp_path, px, planar_F):
     """Every row keeps exactly the reference's inliers: within px of its own F (Sampson, COLMAP pixels) or, for a
-    planar row, of its H; at least 15; rows of at most 15 untouched; config, F, H and the raw matches unchanged; a
+    planar row, of its H or its F; at least 15; rows of at most 15 untouched; config, F, H and the raw matches unchanged; a
     second pass changes nothing."""
     from guidedmatch.collection.sinks import tighten_two_view_inliers
     from guidedmatch.testing.multiview import make_multiview, write_views
@@ -654,7 +659,8 @@ def test_tighten_inliers_keeps_those_within_px_of_the_rows_model(tmp_path, px):
             r = match(fa, fb)
             g = r.geometry
             if (a, b) == (1, 2):   # one planar row: the same inliers judged by the verdict's H
-                g = TwoViewGeometry("verified", "H", None, g.H, g.inliers, g.num_inliers, g.num_matches, "planar")
+                g = TwoViewGeometry("verified", "H", g.F if planar_F else None, g.H, g.inliers, g.num_inliers,
+                                    g.num_matches, "planar")
             sink.write(mv.names[a], mv.names[b], r.pairs, r.distances, g)
     src.close()
     db = pycolmap.Database.open(str(tmp_path / "db.db"))

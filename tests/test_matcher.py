@@ -306,6 +306,14 @@ def test_pure_rotation_scene_is_H():
     np.testing.assert_array_equal(on.pairs, off.pairs[~guided_off])
     assert np.all(on.geometry.inliers[on.flags["phase"] >= 1])
     assert off.stats.details["dropped_off_homography"] == 0
+    # planar_inliers="larger": the larger of the H and final-F inlier sets; when it is F's, nothing is dropped
+    lg = match(f1, f2, "so+epi+ia", GUIDED.replace(frame_check=False, planar_inliers="larger"))
+    assert lg.geometry.model == "H" and lg.geometry.colmap_config == 6
+    if lg.geometry.evidence["planar_inliers"] == "F":
+        np.testing.assert_array_equal(lg.pairs, off.pairs)
+        assert lg.geometry.num_inliers > lg.geometry.evidence["reported_H_inliers"]
+    else:
+        np.testing.assert_array_equal(lg.pairs, on.pairs)
 
 
 # unguided start: ski-rental default (exact for the first queries, then the index), index from the first query, and
@@ -692,16 +700,16 @@ def test_flags_and_stats_are_the_same_shape_in_every_mode(scene_and_features):
         assert sum(r.stats.phase_queries) == len(f1)
 
 
-def _dominant_plane_scene():
-    """Two views of 200 points, 60 % on the plane z = 5, the rest at depths 3-12: ``(x1, x2, F, H, n_h, on)`` with
-    the true F, the plane's homography H and the number of points within 3 px of it."""
+def _dominant_plane_scene(share=0.6):
+    """Two views of 200 points, ``share`` of them on the plane z = 5, the rest at depths 3-12: ``(x1, x2, F, H, n_h,
+    on)`` with the true F, the plane's homography H and the number of points within 3 px of it."""
     rng = np.random.default_rng(0)
     K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
     a = np.radians(5.0)
     R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     t = np.array([1.0, 0.0, 0.0])
     n = 200
-    on = np.arange(n) < 0.6 * n  # 60 % of the points on the plane z = 5, the rest at depths 3-12
+    on = np.arange(n) < share * n  # share of the points on the plane z = 5, the rest at depths 3-12
     X = np.c_[rng.uniform(-2, 2, (n, 2)), np.where(on, 5.0, rng.uniform(3, 12, n))]
     x1 = (X @ K.T)[:, :2] / X[:, 2:]
     X2 = X @ R.T + t
@@ -749,6 +757,35 @@ def test_an_H_verdict_on_a_scene_that_is_not_planar_is_reported_as_F():
     with pytest.raises(ConfigError):
         MatcherConfig(nonplanar_as_F="yes")
     assert MatcherConfig().nonplanar_as_F and not MatcherConfig.paper().nonplanar_as_F
+
+
+def test_a_planar_H_verdict_reports_the_larger_inlier_set_as_COLMAP_does():
+    """planar_inliers="larger": a pair planar by COLMAP's rule (90 % of the points on one plane: H inliers >=
+    h_ratio * F inliers) keeps its "H" verdict (configuration 6) but reports the larger of the H and F inlier
+    sets -- here F's, the off-plane points (the parallax) included; the plane alone keeps H's set."""
+    from types import SimpleNamespace
+
+    from guidedmatch.errors import ConfigError
+    from guidedmatch.geometry import TwoViewGeometry, transfer_error, with_larger_inlier_set
+    from guidedmatch.matcher.filters import _planar
+
+    x1, x2, F, H, n_h, on = _dominant_plane_scene(share=0.9)
+    assert _planar(SimpleNamespace(num_inliers=n_h), F, x1, x2) and n_h < len(x1)
+    inl_h = transfer_error(H, x1, x2) <= 3.0
+    g = TwoViewGeometry("verified", "H", None, H, inl_h, int(inl_h.sum()), len(x1), "H verified")
+    r = with_larger_inlier_set(g, F, x1, x2)
+    assert r.verdict == "verified" and r.model == "H" and r.colmap_config == 6 and r.H is H
+    assert r.num_inliers == len(x1) > n_h and r.inliers.all() and np.array_equal(r.F, F)
+    assert r.evidence["planar_inliers"] == "F" and r.evidence["reported_H_inliers"] == n_h
+    gp = TwoViewGeometry("verified", "H", None, H, inl_h[on], int(inl_h[on].sum()), int(on.sum()), "H verified")
+    rp = with_larger_inlier_set(gp, F, x1[on], x2[on])   # the plane alone: F explains no more than H
+    assert rp.evidence["planar_inliers"] == "H" and np.array_equal(rp.inliers, inl_h[on]) and rp.colmap_config == 6
+    with pytest.raises(ValueError):
+        with_larger_inlier_set(TwoViewGeometry("verified", "F", F, None, r.inliers, r.num_inliers, len(x1), "F"),
+                               F, x1, x2)   # only a verified "H" is reported this way
+    with pytest.raises(ConfigError):
+        MatcherConfig(planar_inliers="F")
+    assert MatcherConfig().planar_inliers in ("H", "larger") and MatcherConfig.paper().planar_inliers == "H"
 
 
 # ------------------------------------------------------------------------------------- frame hypotheses

@@ -108,6 +108,10 @@ class MatcherConfig:
                                          # rule (H inliers < h_ratio * F inliers of the final F) is reported as "F" with
                                          # the F inliers, the off-plane ones included, as COLMAP's verification does
                                          # (fox: 448 of 689 "H" pairs, their off-plane inliers are the depth cues)
+    planar_inliers: Literal["H", "larger"] = "H"  # a planar "H" verdict (H inliers >= h_ratio * F inliers): report the H
+                                         # inliers (off-H guided matches dropped by planar_recheck), or "larger": the
+                                         # larger of the H and the final F inlier sets, COLMAP's PLANAR_OR_PANORAMIC rule
+                                         # (the off-plane few carry a short baseline's parallax)
     frame_check: bool = True             # beyond the paper: drop the matches of a verified pair whose keypoint scale change
                                          # (and rotation, with frame_check_deg) disagrees with the pair's (the verified
                                          # inliers' median log-scale ratio, circular mean rotation): a repeated
@@ -189,6 +193,7 @@ class MatcherConfig:
         check_bool(o, "recheck", self.recheck)
         check_bool(o, "planar_recheck", self.planar_recheck)
         check_bool(o, "nonplanar_as_F", self.nonplanar_as_F)
+        check_choice(o, "planar_inliers", self.planar_inliers, ("H", "larger"))
         check_bool(o, "frame_check", self.frame_check)
         if self.frame_check_deg is not None:
             check_number(o, "frame_check_deg", self.frame_check_deg, lo=0, hi=180, lo_open=True)

@@ -222,6 +222,41 @@ def reported_as_fundamental(geometry: TwoViewGeometry, F: np.ndarray, x1, x2,
                            ev)
 
 
+def with_larger_inlier_set(geometry: TwoViewGeometry, F: np.ndarray, x1, x2,
+                           config: VerdictConfig | None = None) -> TwoViewGeometry:
+    """A verified planar "H" ``geometry`` reported with COLMAP's inliers for a PLANAR_OR_PANORAMIC pair: the larger
+    of its H inlier set and the set of ``x1 <-> x2`` within ``threshold_px`` (Sampson) of ``F``. The model stays
+    "H" (configuration 6), ``F`` is stored beside it; ``evidence["planar_inliers"]`` says which set was taken
+    (``"F"`` or ``"H"``) and ``evidence["reported_H_inliers"]`` the H count.
+
+    Why: on a short baseline (consecutive video frames) most matches fit one homography, yet the few that do not
+    carry the parallax the relative translation is estimated from; COLMAP's verification keeps them.
+
+    >>> import numpy as np
+    >>> F = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # pure x-translation: y2 = y1
+    >>> g = TwoViewGeometry("verified", "H", None, np.eye(3), np.array([True, False, False]), 1, 3, "H verified")
+    >>> x1, x2 = np.array([[0.0, 5], [9, 5], [3, 2]]), np.array([[0.0, 5], [4, 5], [1, 2]])
+    >>> r = with_larger_inlier_set(g, F, x1, x2)
+    >>> r.model, r.num_inliers, r.evidence["planar_inliers"], r.F is not None
+    ('H', 3, 'F', True)
+    """
+    c = config or VerdictConfig()
+    if not geometry or geometry.model != "H":
+        raise ValueError("with_larger_inlier_set() takes a verified 'H' geometry")
+    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
+    x2 = np.asarray(x2, np.float64).reshape(-1, 2)
+    F = np.asarray(F, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inl = np.asarray(sampson_distance(F, x1, x2) <= c.threshold_px, bool)
+    ev = dict(geometry.evidence, reported_H_inliers=int(geometry.num_inliers))
+    if int(inl.sum()) <= geometry.num_inliers:
+        return TwoViewGeometry(geometry.verdict, "H", F, geometry.H, geometry.inliers, geometry.num_inliers,
+                               geometry.num_matches, geometry.reason, dict(ev, planar_inliers="H"))
+    why = f"; the F inliers ({int(inl.sum())}, H {int(geometry.num_inliers)}) reported, as COLMAP does"
+    return TwoViewGeometry(geometry.verdict, "H", F, geometry.H, inl, int(inl.sum()), len(x1), geometry.reason + why,
+                           dict(ev, planar_inliers="F"))
+
+
 def random_inlier_bound(m: int, p: float, sample: int, sigmas: float) -> float:
     """Inlier count that random correspondences stay below: ``sample + m p + sigmas sqrt(m p + 1)``."""
     mp = max(m - sample, 0) * p

@@ -338,7 +338,8 @@ class ColmapSink(MatchSink):
                         min_inliers: int = COLMAP_MIN_INLIERS) -> dict:
         """Keep, in every two-view geometry of the database, the inlier matches within ``max_error_px`` of the row's
         own model: the Sampson distance to its F (COLMAP pixels, as the keypoints), or for a planar / panoramic row
-        (configuration 4-6) the transfer error of its H; at least the ``min_inliers`` closest (COLMAP's mapper uses
+        (configuration 4-6) the transfer error of its H or, when smaller, the Sampson distance to its F (such a row
+        carries the larger of the two inlier sets, ``planar_inliers="larger"``); at least the ``min_inliers`` closest (COLMAP's mapper uses
         no pair with fewer: ``min_num_matches`` 15), and rows with at most ``min_inliers`` inliers untouched
         (:func:`guidedmatch.geometry.closest_inliers`). Rows without a model (UNDEFINED, DEGENERATE, or no F / H)
         are not touched.
@@ -369,7 +370,12 @@ class ColmapSink(MatchSink):
                 return None
             (kp1,), (kp2,) = load(i1), load(i2)
             x1, x2 = kp1[m[:, 0]], kp2[m[:, 1]]
-            err = transfer_error(model, x1, x2) if model is H else sampson_distance(model, x1, x2)
+            if model is H:
+                err = transfer_error(H, x1, x2)
+                if F is not None and np.any(F):  # a planar row carries the larger of its H and F inlier sets
+                    err = np.minimum(err, sampson_distance(F, x1, x2))
+            else:
+                err = sampson_distance(model, x1, x2)
             idx = closest_inliers(err, float(max_error_px), int(min_inliers))
             return None if len(idx) == len(m) else idx
 
