@@ -387,6 +387,19 @@ def test_bad_pairs_and_configs_fail_before_any_work(views):
             CollectionConfig(**bad)
 
 
+def test_a_collection_changes_the_one_off_matcher_defaults_and_a_dict_goes_on_top():
+    """A collection feeds a mapper: COLMAP's inliers for a planar pair and the index from the first query; a dict
+    of settings is applied over those, a MatcherConfig taken as it is."""
+    from guidedmatch.collection.config import COLLECTION_MATCHER_DEFAULTS, collection_matcher_config
+    from guidedmatch.config import MatcherConfig
+
+    c = CollectionConfig().matcher
+    assert c.planar_inliers == "larger" and c.exact_rent == 0.0 and MatcherConfig().planar_inliers == "H"
+    assert c == MatcherConfig().replace(**COLLECTION_MATCHER_DEFAULTS)
+    assert CollectionConfig(matcher=dict(planar_inliers="H")).matcher.planar_inliers == "H"
+    assert collection_matcher_config(MatcherConfig()) == MatcherConfig()
+
+
 def test_duplicate_reversed_and_self_pairs_are_dropped_and_reported(views):
     src, sink = DictSource(views), ListSink()
     pairs = [("view0.jpg", "view1.jpg"), ("view1.jpg", "view0.jpg"), ("view0.jpg", "view1.jpg"),

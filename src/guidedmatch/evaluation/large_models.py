@@ -116,6 +116,9 @@ def run_sfm(data: Path, work: Path, names: list[str], rerun: bool = False, extra
     if out.exists():
         shutil.rmtree(out)
     images = image_links(data, names, work / "images")
+    from .bench_large import warm_up
+
+    warm_up(work)  # Numba's on-disk cache, as for the matching rows
     print(f"[bench large] guidedmatch sfm --mapper {mapper} ...", file=sys.stderr, flush=True)
     load0 = os.getloadavg()
     extra = ("--mapper", mapper, *extra)
