@@ -51,6 +51,7 @@ import time
 from pathlib import Path
 
 from .bench_collection import THREADS, _env, _timed
+from .large_models import warm_up
 from .meta import default_cache
 
 FOLDERS = ("collections/Herz-Jesus-P25/images", "collections/buddha/images", "collections/fox/images",
@@ -191,28 +192,6 @@ def db_pairs(db: Path) -> dict:
     finally:
         con.close()
     return dict(tried=tried, verified={p: r for p, r in geo.items() if r > 0})
-
-
-_WARM: dict = {}
-
-
-def warm_up(work: Path) -> float:
-    """Run ``guidedmatch colmap`` once, untimed, on one pair of a scratch copy of the features, so that our timed
-    runs load the matcher's compiled kernels from Numba's on-disk cache (a first-ever run compiles them once, as
-    ``benchmarks/results/startup`` measures); returns its wall seconds (0 when already done in this process)."""
-    if "s" in _WARM:
-        return 0.0
-    scratch, pairs = work / "warmup.db", work / "warmup_pairs.txt"
-    shutil.copyfile(work / "features.db", scratch)
-    names = json.loads((work / "features.json").read_text())["names"][:2]
-    pairs.write_text(f"{names[0]} {names[1]}\n")
-    print("[bench large] warm-up (one pair, untimed: Numba's on-disk cache) ...", file=sys.stderr, flush=True)
-    r = _timed([sys.executable, "-m", "guidedmatch.cli", "colmap", str(scratch), "--pairs", str(pairs),
-                "--no-progress", "--log", "none"])
-    for q in work.glob("warmup*"):
-        q.unlink()
-    _WARM["s"] = r["wall_s"]
-    return r["wall_s"]
 
 
 def run_method(method: str, work: Path, k: int, vt_words: int, vt_sample: int, rerun: bool,

@@ -319,14 +319,15 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
         dropped_planar = 0
         homography = bool(geometry) and geometry.model == "H" and len(q) > 0
         planar = homography and _planar(geometry, final_F, x1, x2)
+        recheck = planar and self.c.planar_recheck
         if planar and self.c.planar_inliers == "larger" and final_F is not None and np.all(np.isfinite(final_F)):
-            # COLMAP's PLANAR_OR_PANORAMIC rule: the larger of the H and F inlier sets; when it is F's, the guided
-            # matches off H are F inliers and stay (no planar recheck)
+            # COLMAP's PLANAR_OR_PANORAMIC rule: the "H" pair carries the larger of the H and F inlier sets; when it
+            # is F's, the guided matches off H are F inliers and stay (no planar recheck)
             from ..geometry import with_larger_inlier_set
 
             geometry = with_larger_inlier_set(geometry, final_F, x1, x2, VerdictConfig(seed=self.c.seed))
-            planar = geometry.evidence["planar_inliers"] == "H"
-        if planar and self.c.planar_recheck:
+            recheck = recheck and geometry.evidence["planar_inliers"] == "H"
+        if recheck:
             # a planar scene (or pure rotation): the epipolar band of an F fitted to it constrains nothing along the
             # plane, the verified homography does -- guided matches off it are dropped (unguided ones stay, as in BF)
             keep = (flags["phase"] == 0) | geometry.inliers
