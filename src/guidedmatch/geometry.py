@@ -191,6 +191,20 @@ def report_geometry(decision: TwoViewGeometry, x1, x2, *, F: np.ndarray | None =
     return TwoViewGeometry(decision.verdict, decision.model, Fr, Hr, inl, int(inl.sum()), len(x1), decision.reason, ev)
 
 
+def _F_inliers_of_H_verdict(caller: str, geometry: TwoViewGeometry, F, x1, x2, config) -> tuple:
+    """``(F, inliers within threshold_px (Sampson) of F, evidence + reported_H_inliers)`` for a verified "H"
+    ``geometry`` (ValueError naming ``caller`` otherwise)."""
+    c = config or VerdictConfig()
+    if not geometry or geometry.model != "H":
+        raise ValueError(f"{caller}() takes a verified 'H' geometry")
+    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
+    x2 = np.asarray(x2, np.float64).reshape(-1, 2)
+    F = np.asarray(F, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inl = np.asarray(sampson_distance(F, x1, x2) <= c.threshold_px, bool)
+    return F, inl, dict(geometry.evidence, reported_H_inliers=int(geometry.num_inliers))
+
+
 def reported_as_fundamental(geometry: TwoViewGeometry, F: np.ndarray, x1, x2,
                             config: VerdictConfig | None = None) -> TwoViewGeometry:
     """A verified "H" ``geometry`` reported as "F": the correspondences ``x1 <-> x2`` within ``threshold_px``
@@ -207,15 +221,8 @@ def reported_as_fundamental(geometry: TwoViewGeometry, F: np.ndarray, x1, x2,
     >>> r.model, r.num_inliers, r.evidence["reported_from"], r.H is not None
     ('F', 2, 'H', True)
     """
-    c = config or VerdictConfig()
-    if not geometry or geometry.model != "H":
-        raise ValueError("reported_as_fundamental() takes a verified 'H' geometry")
-    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
-    x2 = np.asarray(x2, np.float64).reshape(-1, 2)
-    F = np.asarray(F, np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inl = np.asarray(sampson_distance(F, x1, x2) <= c.threshold_px, bool)
-    ev = dict(geometry.evidence, reported_from="H", reported_H_inliers=int(geometry.num_inliers))
+    F, inl, ev = _F_inliers_of_H_verdict("reported_as_fundamental", geometry, F, x1, x2, config)
+    ev["reported_from"] = "H"
     why = (f"; the final matches are not planar (H explains {int(geometry.num_inliers)} of them, F {int(inl.sum())}): "
            "reported as F with its inliers")
     return TwoViewGeometry(geometry.verdict, "F", F, geometry.H, inl, int(inl.sum()), len(x1), geometry.reason + why,
@@ -240,15 +247,7 @@ def with_larger_inlier_set(geometry: TwoViewGeometry, F: np.ndarray, x1, x2,
     >>> r.model, r.num_inliers, r.evidence["planar_inliers"], r.F is not None
     ('H', 3, 'F', True)
     """
-    c = config or VerdictConfig()
-    if not geometry or geometry.model != "H":
-        raise ValueError("with_larger_inlier_set() takes a verified 'H' geometry")
-    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
-    x2 = np.asarray(x2, np.float64).reshape(-1, 2)
-    F = np.asarray(F, np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inl = np.asarray(sampson_distance(F, x1, x2) <= c.threshold_px, bool)
-    ev = dict(geometry.evidence, reported_H_inliers=int(geometry.num_inliers))
+    F, inl, ev = _F_inliers_of_H_verdict("with_larger_inlier_set", geometry, F, x1, x2, config)
     if int(inl.sum()) <= geometry.num_inliers:
         return TwoViewGeometry(geometry.verdict, "H", F, geometry.H, geometry.inliers, geometry.num_inliers,
                                geometry.num_matches, geometry.reason, dict(ev, planar_inliers="H"))
