@@ -20,8 +20,8 @@ __all__ = ["CollectionConfig", "COLLECTION_MATCHER_DEFAULTS", "collection_matche
 #: only pays off for one-off pairs. Herz-Jesus-P8 ~40k SIFT, 28 pairs with prepared images: 4.05 -> 3.61 s, GT
 #: inliers 186,104 -> 188,491, same verdicts; the 50k COLMAP database: ~0.1 s CPU less per pair (docs/collections.md).
 #: ``planar_inliers="larger"``: a collection feeds a mapper, so a planar "H" pair carries COLMAP's inliers for a
-#: PLANAR_OR_PANORAMIC pair, the larger of its H and F inlier sets (fox, 3 mapper seeds: 0.493 -> 0.477 deg, AUC@1
-#: 0.488 -> 0.498, COLMAP's matcher 0.477 / 0.498; buddha, P8, P25 unchanged); a one-off pair keeps "H" and the planar
+#: PLANAR_OR_PANORAMIC pair, the larger of its H and F inlier sets (fox, 3 mapper seeds: 0.493 -> 0.475 deg, AUC@1
+#: 0.488 -> 0.501, COLMAP's matcher 0.477 / 0.498; buddha, P8, P25 unchanged); a one-off pair keeps "H" and the planar
 #: re-check, which keeps a planar scene's guided matches on its homography (Oxford wall 1-2: 2.2 % -> 0.6 % wrong).
 COLLECTION_MATCHER_DEFAULTS = {"exact_rent": 0.0, "planar_inliers": "larger"}
 
