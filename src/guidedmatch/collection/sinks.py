@@ -362,20 +362,19 @@ class ColmapSink(MatchSink):
             return (np.asarray(db.read_keypoints(iid))[:, :2].astype(np.float64),)
 
         def keep(g, m, load, i1, i2):
-            F = None if g.F is None else np.asarray(g.F, dtype=np.float64)
-            H = None if g.H is None else np.asarray(g.H, dtype=np.float64)
-            planar = int(g.config) in (4, 5, 6)
-            model = H if planar and H is not None and np.any(H) else F if F is not None and np.any(F) else None
-            if model is None:
+            F = None if g.F is None or not np.any(g.F) else np.asarray(g.F, dtype=np.float64)
+            H = None if g.H is None or not np.any(g.H) else np.asarray(g.H, dtype=np.float64)
+            if int(g.config) not in (4, 5, 6):
+                H = None   # only a planar / panoramic row is judged by its H
+            if F is None and H is None:
                 return None
             (kp1,), (kp2,) = load(i1), load(i2)
             x1, x2 = kp1[m[:, 0]], kp2[m[:, 1]]
-            if model is H:
-                err = transfer_error(H, x1, x2)
-                if F is not None and np.any(F):  # a planar row carries the larger of its H and F inlier sets
-                    err = np.minimum(err, sampson_distance(F, x1, x2))
-            else:
-                err = sampson_distance(model, x1, x2)
+            # the smaller error of the row's models: a planar row carries the larger of its H and F inlier sets
+            err = None if H is None else transfer_error(H, x1, x2)
+            if F is not None:
+                e = sampson_distance(F, x1, x2)
+                err = e if err is None else np.minimum(err, e)
             idx = closest_inliers(err, float(max_error_px), int(min_inliers))
             return None if len(idx) == len(m) else idx
 
