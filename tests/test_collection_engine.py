@@ -388,13 +388,15 @@ def test_bad_pairs_and_configs_fail_before_any_work(views):
 
 
 def test_a_collection_changes_the_one_off_matcher_defaults_and_a_dict_goes_on_top():
-    """A collection feeds a mapper: COLMAP's inliers for a planar pair and the index from the first query; a dict
+    """A collection feeds a mapper: COLMAP's inliers for a planar pair, the index from the first query and one model
+    fit; a dict
     of settings is applied over those, a MatcherConfig taken as it is."""
     from guidedmatch.collection.config import COLLECTION_MATCHER_DEFAULTS, collection_matcher_config
     from guidedmatch.config import MatcherConfig
 
     c = CollectionConfig().matcher
     assert c.planar_inliers == "larger" and c.exact_rent == 0.0 and MatcherConfig().planar_inliers == "H"
+    assert c.num_updates == 1 and MatcherConfig().num_updates == 3   # one model fit in a collection, the paper's 3 one-off
     assert c == MatcherConfig().replace(**COLLECTION_MATCHER_DEFAULTS)
     assert CollectionConfig(matcher=dict(planar_inliers="H")).matcher.planar_inliers == "H"
     assert collection_matcher_config(MatcherConfig()) == MatcherConfig()
