@@ -101,7 +101,9 @@ def all_pairs(names):
 
 def reference(feats, a, b, mode="so+epi+ia", first=None, config=None):
     """The slow, obviously-correct path: one direct matcher call per pair (its result carries the verdict)."""
-    res = match(feats[a], feats[b], mode, config or MatcherConfig(), first=first)
+    from guidedmatch.collection.config import collection_matcher_config
+
+    res = match(feats[a], feats[b], mode, config or collection_matcher_config(), first=first)  # a collection's settings
     return res, res.geometry
 
 

@@ -320,9 +320,11 @@ class ListSink:
 
 
 def direct(views, pairs):
+    from guidedmatch.collection.config import collection_matcher_config
+
     out = {}
     for a, b in pairs:
-        r = match(views[a], views[b], "so+epi+ia", MatcherConfig())
+        r = match(views[a], views[b], "so+epi+ia", collection_matcher_config())  # the collection's settings
         out[frozenset((a, b))] = (r.pairs.tobytes(), r.distances.tobytes(), r.geometry.verdict, r.geometry.num_inliers)
     return out
 
