@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from guidedmatch.collection import cache as engine_cache
 from guidedmatch.collection import inprocess, planning
 from guidedmatch.collection.cache import _ImageCache, _TaskSpec
+from guidedmatch.collection.config import collection_matcher_config
 from guidedmatch.collection.engine import CollectionConfig, match_collection, plan_tasks
 from guidedmatch.errors import ConfigError, InputError
 from guidedmatch.features import Features
@@ -101,8 +102,6 @@ def all_pairs(names):
 
 def reference(feats, a, b, mode="so+epi+ia", first=None, config=None):
     """The slow, obviously-correct path: one direct matcher call per pair (its result carries the verdict)."""
-    from guidedmatch.collection.config import collection_matcher_config
-
     res = match(feats[a], feats[b], mode, config or collection_matcher_config(), first=first)  # a collection's settings
     return res, res.geometry
 
@@ -391,9 +390,8 @@ def test_bad_pairs_and_configs_fail_before_any_work(views):
 
 def test_a_collection_changes_the_one_off_matcher_defaults_and_a_dict_goes_on_top():
     """A collection feeds a mapper: COLMAP's inliers for a planar pair, the index from the first query and one model
-    fit; a dict
-    of settings is applied over those, a MatcherConfig taken as it is."""
-    from guidedmatch.collection.config import COLLECTION_MATCHER_DEFAULTS, collection_matcher_config
+    fit; a dict of settings is applied over those, a MatcherConfig taken as it is."""
+    from guidedmatch.collection.config import COLLECTION_MATCHER_DEFAULTS
     from guidedmatch.config import MatcherConfig
 
     c = CollectionConfig().matcher

@@ -25,6 +25,7 @@ from threadpoolctl import threadpool_limits
 import guidedmatch as gm
 from guidedmatch import exact, kernels
 from guidedmatch.bruteforce import DenseKnn2, knn2
+from guidedmatch.collection.config import collection_matcher_config
 from guidedmatch.collection.engine import match_collection
 from guidedmatch.features import Features
 from guidedmatch.matcher import MatcherConfig, match
@@ -320,8 +321,6 @@ class ListSink:
 
 
 def direct(views, pairs):
-    from guidedmatch.collection.config import collection_matcher_config
-
     out = {}
     for a, b in pairs:
         r = match(views[a], views[b], "so+epi+ia", collection_matcher_config())  # the collection's settings
