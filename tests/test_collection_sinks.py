@@ -539,17 +539,55 @@ def _geometry_rows(path):
         db.close()
 
 
-def _cap_reference(path, i1, i2, inliers, k, grid=16):
-    """The kept inliers computed independently: raw COLMAP keypoints and uint8 descriptors straight from the
-    database, L2 (SIFT) or Hamming (binary) distances, then the rounds of the reference above."""
+def _slow_model_error(kp1, kp2, g, m):
+    """Each correspondence's error to a geometry row's own model, one at a time: the Sampson distance to its F, for a
+    planar row (configuration 4-6) the smaller of that and its H transfer error; None when the row has no model."""
+    F = np.asarray(g.F, np.float64) if g.F is not None and np.any(g.F) else None
+    H = np.asarray(g.H, np.float64) if int(g.config) in (4, 5, 6) and g.H is not None and np.any(g.H) else None
+    if F is None and H is None:
+        return None
+    errs = []
+    for a, b in m:
+        x1, x2 = np.r_[kp1[a], 1.0], np.r_[kp2[b], 1.0]
+        e = np.inf
+        if F is not None:
+            l2, l1 = F @ x1, F.T @ x2
+            e = abs(float(x2 @ F @ x1)) / np.sqrt(l2[0] ** 2 + l2[1] ** 2 + l1[0] ** 2 + l1[1] ** 2)
+        if H is not None:
+            y = H @ x1
+            e = min(e, float(np.hypot(y[0] / y[2] - x2[0], y[1] / y[2] - x2[1])))
+        errs.append(e)
+    return np.array(errs)
+
+
+def _cap_reference(path, i1, i2, inliers, k, grid=16, order="distance", px=1.5):
+    """The kept inliers computed independently from the raw database rows, then the rounds of the spread reference:
+    ``distance`` -- L2 (SIFT) or Hamming (binary) descriptor distances; ``residual`` -- the error to the row's own
+    model; ``track`` -- first the number of verified rows (of the whole database) whose raw matches use each of
+    the match's two keypoints within ``px`` of the row's model (counted one row and one keypoint at a time), then
+    that error."""
     from tests.test_geometry import _spread_reference
 
     db = pycolmap.Database.open(str(path))
     try:
-        kp1 = np.asarray(db.read_keypoints(i1))[:, :2]
+        kps = {int(im.image_id): np.asarray(db.read_keypoints(im.image_id))[:, :2].astype(np.float64)
+               for im in db.read_all_images()}
         d1, d2 = (np.asarray(db.read_descriptors(i).data) for i in (i1, i2))
         cam = db.read_camera(db.read_image(i1).camera_id)
         binary = db.read_descriptors(i1).type.name != "SIFT"
+        g = db.read_two_view_geometry(i1, i2)
+        used = {}   # (image id, keypoint) -> verified rows using it
+        if order == "track":
+            for pid, n in zip(*db.read_two_view_geometry_num_inliers()):
+                if n == 0:
+                    continue
+                a, b = (int(i) for i in pycolmap.pair_id_to_image_pair(int(pid)))
+                raw = np.asarray(db.read_matches(a, b)).tolist()
+                e = _slow_model_error(kps[a], kps[b], db.read_two_view_geometry(a, b), raw)
+                seen = {(a, p) for (p, q), ee in zip(raw, e) if ee <= px} | {(b, q) for (p, q), ee in zip(raw, e)
+                                                                           if ee <= px}
+                for key in seen:
+                    used[key] = used.get(key, 0) + 1
     finally:
         db.close()
     a, b = d1[inliers[:, 0]], d2[inliers[:, 1]]
@@ -557,15 +595,18 @@ def _cap_reference(path, i1, i2, inliers, k, grid=16):
         dist = np.array([bin(int.from_bytes((x ^ y).tobytes(), "big")).count("1") for x, y in zip(a, b)], float)
     else:
         dist = np.sqrt(((a.astype(np.float64) - b.astype(np.float64)) ** 2).sum(1))
-    keep = _spread_reference(kp1[inliers[:, 0]], (cam.width, cam.height), dist, k, grid)
+    if order == "distance":
+        score = dist
+    else:
+        score = _slow_model_error(kps[i1], kps[i2], g, inliers.tolist())
+        if order == "track":
+            score = np.array([-(used.get((i1, p), 0) + used.get((i2, q), 0)) + min(e, 9.99) / 10
+                              for (p, q), e in zip(inliers.tolist(), score)])
+    keep = _spread_reference(kps[i1][inliers[:, 0]], (cam.width, cam.height), score, k, grid)
     return inliers[np.sort(keep)]
 
 
-@pytest.mark.parametrize("detector", ["sift", "orb"])
-def test_cap_inliers_keeps_a_spread_best_first_subset(tmp_path, detector):
-    """Pairs above the cap keep exactly the reference's inliers (a subset of theirs; config, F and the raw matches
-    unchanged); pairs at or below it are untouched; a second pass changes nothing."""
-    from guidedmatch.collection.sinks import cap_two_view_inliers
+def _three_view_database(tmp_path, detector):
     from guidedmatch.testing.multiview import make_multiview, write_views
 
     mv = make_multiview(3, (320, 240), seed=5, isolated=False)
@@ -578,12 +619,24 @@ def test_cap_inliers_keeps_a_spread_best_first_subset(tmp_path, detector):
             r = match(fa, fb)
             sink.write(mv.names[a], mv.names[b], r.pairs, r.distances, r.geometry)
     src.close()
-    before = _geometry_rows(tmp_path / "db.db")
+    return tmp_path / "db.db"
+
+
+@pytest.mark.parametrize("detector, order", [("sift", "track"), ("sift", "residual"), ("sift", "distance"),
+                                             ("orb", "track"), ("orb", "distance")])
+def test_cap_inliers_keeps_a_spread_best_first_subset(tmp_path, detector, order):
+    """Pairs above the cap keep exactly the reference's inliers (a subset of theirs; config, F and the raw matches
+    unchanged); pairs at or below it are untouched; a second pass changes nothing."""
+    from guidedmatch.collection.sinks import cap_two_view_inliers
+
+    db = _three_view_database(tmp_path, detector)
+    before = _geometry_rows(db)
     counts = sorted(len(v[2]) for v in before.values())
     assert counts[0] > 20, counts
     k = counts[-1] - max(1, (counts[-1] - counts[0]) // 2)   # pairs above the cap (and, unless all are equal, below)
-    rep = cap_two_view_inliers(tmp_path / "db.db", k)
-    after = _geometry_rows(tmp_path / "db.db")
+    rep = cap_two_view_inliers(db, k, order=order)
+    after = _geometry_rows(db)
+    assert rep["order"] == order
     assert rep["pairs_capped"] == sum(c > k for c in counts) >= 1
     assert rep["inliers_before"] == sum(counts) and rep["inliers_after"] == sum(min(c, k) for c in counts)
     for key, (config, F, inl, raw) in before.items():
@@ -593,9 +646,40 @@ def test_cap_inliers_keeps_a_spread_best_first_subset(tmp_path, detector):
             assert np.array_equal(inl2, inl)
         else:
             assert len(inl2) == k
-            assert np.array_equal(inl2, _cap_reference(tmp_path / "db.db", *key, inl, k))
-    assert cap_two_view_inliers(tmp_path / "db.db", k)["pairs_capped"] == 0
-    assert all(np.array_equal(after[key][2], v[2]) for key, v in _geometry_rows(tmp_path / "db.db").items())
+            assert np.array_equal(inl2, _cap_reference(db, *key, inl, k, order=order))
+    assert cap_two_view_inliers(db, k, order=order)["pairs_capped"] == 0
+    assert all(np.array_equal(after[key][2], v[2]) for key, v in _geometry_rows(db).items())
+
+
+def test_cap_inliers_track_order_is_the_same_after_an_interrupted_pass(tmp_path):
+    """The track order ranks by what the cap never changes: a pass interrupted after its first capped pair (that
+    pair written, the others not), then run again, gives the database of one uninterrupted pass -- and the orders
+    differ here, so the test can tell them apart."""
+    import shutil
+
+    from guidedmatch.collection.sinks import cap_two_view_inliers
+
+    db = _three_view_database(tmp_path, "sift")
+    counts = sorted(len(v[2]) for v in _geometry_rows(db).values())
+    k = counts[0] - 5     # every pair capped
+    for name in ("whole.db", "interrupted.db", "distance.db"):
+        shutil.copyfile(db, tmp_path / name)
+    cap_two_view_inliers(tmp_path / "whole.db", k)
+    cap_two_view_inliers(tmp_path / "distance.db", k, order="distance")
+    whole, by_distance = _geometry_rows(tmp_path / "whole.db"), _geometry_rows(tmp_path / "distance.db")
+    assert any(not np.array_equal(whole[key][2], by_distance[key][2]) for key in whole)
+    first = min(whole)
+    d = pycolmap.Database.open(str(tmp_path / "interrupted.db"))
+    try:
+        g = d.read_two_view_geometry(*first)
+        g.inlier_matches = np.ascontiguousarray(whole[first][2], dtype=np.uint32)
+        d.update_two_view_geometry(*first, g)
+    finally:
+        d.close()
+    rep = cap_two_view_inliers(tmp_path / "interrupted.db", k)
+    assert rep["pairs_capped"] == len(whole) - 1
+    again = _geometry_rows(tmp_path / "interrupted.db")
+    assert all(np.array_equal(again[key][2], whole[key][2]) for key in whole)
 
 
 def test_cap_inliers_bad_input_and_lock(db_copy):
@@ -603,6 +687,8 @@ def test_cap_inliers_bad_input_and_lock(db_copy):
 
     with pytest.raises(ConfigError):
         cap_two_view_inliers(db_copy, 0)
+    with pytest.raises(ConfigError, match="order"):
+        cap_two_view_inliers(db_copy, 10, order="best")
     with ColmapSink(db_copy):
         with pytest.raises(DatabaseBusyError):
             cap_two_view_inliers(db_copy, 10)

@@ -86,7 +86,7 @@ def add_commands(sub, parents) -> None:
                         "pycolmap's geometric verification (default ours)")
     c.add_argument("--max-inliers-per-pair", type=int, default=0, metavar="K",
                    help="then keep at most K inliers per pair for the mapper, spread over the image, best first "
-                        "(default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; "
+                        "(keypoints in the most verified pairs, then the smallest error to the pair's F / H; default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; "
                         "below 100 COLMAP's mapper cannot pick an initial pair)")
     c.add_argument("--inlier-px", type=float, default=DEFAULT_INLIER_PX, metavar="PX",
                    help="with --geometry ours: the mapper gets the inliers within PX of their pair's F / H, at least "

@@ -194,9 +194,9 @@ def add_commands(sub, parents) -> None:
     s.add_argument("--geometry", default="ours", choices=("ours", "colmap"), help="two-view geometry: ours "
                    "(the matcher's verdict, default) or colmap (pycolmap's verification)")
     s.add_argument("--max-inliers-per-pair", type=int, default=1000, metavar="K", help="inlier matches "
-                   "per pair handed to the mapper, spread over the image, best first (default 1000; 0 = all): the "
-                   "mapper's time follows its observations, and on Herz-Jesus-P8 1000 gave poses at least as good as "
-                   "all of them (docs/collections.md)")
+                   "per pair handed to the mapper, spread over the image, best first: keypoints in the most verified pairs, "
+                   "then the smallest error to the pair's F / H (default 1000; 0 = all): the mapper's time follows "
+                   "its observations, and 1000 gave poses at least as good as all of them (docs/sfm.md)")
     s.add_argument("--inlier-px", type=float, default=DEFAULT_INLIER_PX, metavar="PX", help="with --geometry ours: "
                    "the mapper gets the inliers within PX of their pair's F / H, at least 15 per pair (default "
                    f"{DEFAULT_INLIER_PX:g}; the verdict decides at 3 px; 0 = all: docs/collections.md)")
