@@ -850,6 +850,24 @@ def test_cli_inlier_px_hands_the_mapper_the_precise_inliers(rendered_db, tmp_pat
     assert registered == set(mv.names) - {mv.names[k] for k in mv.isolated}
 
 
+def test_cli_cap_above_leaves_a_small_database_whole(rendered_db, tmp_path):
+    """--max-inliers-per-pair with the default --cap-above (100,000): the rendered scene's few thousand inliers are
+    all kept, and the summary says why; the same database and cap with --cap-above 0 is capped."""
+    import shutil
+
+    root, _ = rendered_db
+    whole, capped = tmp_path / "whole.db", tmp_path / "capped.db"
+    shutil.copy(root / "fresh.db", whole)
+    shutil.copy(root / "fresh.db", capped)
+    r = run_cli("colmap", whole, "--workers", "0", "--no-progress", "--max-inliers-per-pair", "130")
+    assert r.returncode == 0, r.stderr
+    assert "the cap of 130 per pair applies above 100,000 in all" in r.stdout, r.stdout
+    assert any(len(g[1]) > 130 for _, g in db_rows(whole).values())
+    r = run_cli("colmap", capped, "--workers", "0", "--no-progress", "--max-inliers-per-pair", "130", "--cap-above", "0")
+    assert r.returncode == 0 and max(len(g[1]) for _, g in db_rows(capped).values()) == 130
+    assert run_cli("colmap", whole, "--cap-above", "-5").returncode == 2
+
+
 def test_cli_max_inliers_per_pair_caps_the_mappers_inliers(rendered_db, tmp_path):
     """--max-inliers-per-pair K: every geometry keeps at most K inliers (the raw matches all of theirs), the summary
     says how many were kept, and the mapper still registers every view that overlaps another."""
@@ -862,9 +880,10 @@ def test_cli_max_inliers_per_pair_caps_the_mappers_inliers(rendered_db, tmp_path
     shutil.copy(root / "fresh.db", full)
     shutil.copy(root / "fresh.db", capped)
     assert run_cli("colmap", full, "--workers", "0", "--no-progress").returncode == 0
-    r = run_cli("colmap", capped, "--workers", "0", "--no-progress", "--max-inliers-per-pair", "130")
+    r = run_cli("colmap", capped, "--workers", "0", "--no-progress", "--max-inliers-per-pair", "130",
+                "--cap-above", "0")
     assert r.returncode == 0, r.stderr
-    assert "inliers kept (at most 130 per pair" in r.stdout, r.stdout
+    assert "inliers (at most 130 per pair" in r.stdout, r.stdout
     a, b = db_rows(full), db_rows(capped)
     assert a.keys() == b.keys()
     assert any(len(g[1]) > 130 for _, g in a.values())            # the cap had something to do

@@ -651,6 +651,33 @@ def test_cap_inliers_keeps_a_spread_best_first_subset(tmp_path, detector, order)
     assert all(np.array_equal(after[key][2], v[2]) for key, v in _geometry_rows(db).items())
 
 
+def test_cap_inliers_above_applies_only_to_a_larger_total(tmp_path):
+    """``above``: at or below the database's total inliers nothing changes and the record says so (not applied, the
+    total before and after); one inlier fewer and it is the plain cap, row for row."""
+    import shutil
+
+    from guidedmatch.collection.sinks import cap_two_view_inliers
+
+    db = _three_view_database(tmp_path, "sift")
+    before = _geometry_rows(db)
+    counts = sorted(len(v[2]) for v in before.values())
+    total, k = sum(counts), counts[0] - 5    # every pair above k
+    for name in ("plain.db", "below.db"):
+        shutil.copyfile(db, tmp_path / name)
+    rep = cap_two_view_inliers(db, k, above=total)
+    assert rep["applied"] is False and rep["above"] == total and rep["pairs_capped"] == 0
+    assert rep["inliers_before"] == rep["inliers_after"] == total and rep["pairs"] == len(counts)
+    assert all(np.array_equal(_geometry_rows(db)[key][2], v[2]) for key, v in before.items())
+    capped = cap_two_view_inliers(tmp_path / "below.db", k, above=total - 1)
+    plain = cap_two_view_inliers(tmp_path / "plain.db", k)
+    assert capped["applied"] is True and plain["applied"] is True and capped["above"] == total - 1
+    assert capped["pairs_capped"] == plain["pairs_capped"] == len(counts)
+    a, b = _geometry_rows(tmp_path / "below.db"), _geometry_rows(tmp_path / "plain.db")
+    assert all(np.array_equal(a[key][2], b[key][2]) for key in a)
+    with pytest.raises(ConfigError, match="above"):
+        cap_two_view_inliers(db, k, above=-1)
+
+
 def test_cap_inliers_track_order_is_the_same_after_an_interrupted_pass(tmp_path):
     """The track order ranks by what the cap never changes: a pass interrupted after its first capped pair (that
     pair written, the others not), then run again, gives the database of one uninterrupted pass -- and the orders

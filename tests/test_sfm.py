@@ -177,7 +177,10 @@ def test_sfm_end_to_end_and_resume(rendered, tmp_path):
     assert rep["stages"]["extraction"]["extracted"] == 5
     assert rep["stages"]["matching"]["collection"]["done"] == 10
     assert rep["stages"]["mapping"]["models"][0]["mean_reprojection_error_px"] < 1.0
-    assert rep["stages"]["matching"]["inlier_cap"]["max_inliers"] == 1000    # the default
+    cap = rep["stages"]["matching"]["inlier_cap"]
+    assert cap["max_inliers"] == 1000 and cap["above"] == 100_000    # the defaults: a few thousand inliers stay whole
+    assert cap["applied"] is False and cap["pairs_capped"] == 0 and cap["inliers_after"] == cap["inliers_before"]
+    assert "the mapper gets all of them (the cap of 1000 per pair applies above 100,000" in (out / "report.md").read_text()
     assert "zz_broken.png" in (out / "report.md").read_text()
 
     gt = {n: CameraPose(R, t) for n, R, t in zip(scene.names, scene.R, scene.t)}
@@ -225,7 +228,7 @@ def test_sfm_colmap_verification_single_camera(rendered, tmp_path):
     scene, folder = rendered
     out = tmp_path / "proj"
     proc = run_cli("sfm", folder, out, "--detector", "ours:sift", "--single-camera", "--geometry", "colmap",
-                   "--threads", "2", "--workers", "0", "--quiet", "--max-inliers-per-pair", "200")
+                   "--threads", "2", "--workers", "0", "--quiet", "--max-inliers-per-pair", "200", "--cap-above", "0")
     assert proc.returncode == 0, proc.stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["registered"] == 5
@@ -379,6 +382,20 @@ def test_sfm_global_mapper(rendered, tmp_path):
     # stated tolerance for the global mapper (known intrinsics): median <= 1 deg, every pair <= 3 deg
     assert ev.num_registered == 5 and ev.median_error_deg <= 1.0, ev.summary()
     assert max(r["error_deg"] for r in ev.per_pair) <= 3.0, ev.summary()
+
+
+def test_cli_cap_above_default_is_the_sfm_constant():
+    """The CLI writes CAP_ABOVE_INLIERS out (it does not import guidedmatch.sfm): both commands' --cap-above default
+    and the SfmConfig default are that constant."""
+    from guidedmatch.cli import build_parser
+    from guidedmatch.sfm.config import CAP_ABOVE_INLIERS, SfmConfig
+
+    sub = next(a for a in build_parser()._actions if hasattr(a, "choices") and isinstance(a.choices, dict))
+    for cmd in ("sfm", "colmap"):
+        opt = next(a for a in sub.choices[cmd]._actions if "--cap-above" in a.option_strings)
+        assert opt.default == CAP_ABOVE_INLIERS == SfmConfig().cap_above
+    with pytest.raises(ConfigError):
+        SfmConfig(cap_above=-1)
 
 
 def test_cli_mapper_help_states_the_auto_threshold():

@@ -129,7 +129,8 @@ def test_overlapped_database_equals_the_staged_one(views, tmp_path, pairs):
     from guidedmatch.sfm import run_sfm
 
     scene, folder = views
-    conf = {"pairs": pairs, "workers": 0, "num_threads": 2, "progress": False, "max_inliers_per_pair": 200}
+    conf = {"pairs": pairs, "workers": 0, "num_threads": 2, "progress": False, "max_inliers_per_pair": 200,
+            "cap_above": 0}
     on = run_sfm(folder, tmp_path / "on", {**conf, "pipeline": "on"})
     off = run_sfm(folder, tmp_path / "off", {**conf, "pipeline": "off"})
     a, b = db_dump(tmp_path / "on" / "database.db"), db_dump(tmp_path / "off" / "database.db")

@@ -9,7 +9,7 @@ from ..base import DEFAULT_INLIER_PX
 from ..config import MODES
 from ..errors import ConfigError, GuidedMatchError, InputError
 from ..features import writable_folder
-from .common import nonneg_int, parse_kv, positive_int
+from .common import add_cap_above_option, nonneg_int, parse_kv, positive_int
 
 __all__ = ["add_commands", "cmd_colmap", "cmd_hloc", "add_matching_options"]
 
@@ -86,8 +86,9 @@ def add_commands(sub, parents) -> None:
                         "pycolmap's geometric verification (default ours)")
     c.add_argument("--max-inliers-per-pair", type=int, default=0, metavar="K",
                    help="then keep at most K inliers per pair for the mapper, spread over the image, best first "
-                        "(keypoints in the most verified pairs, then the smallest error to the pair's F / H; default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; "
+                        "(keypoints in the most verified pairs, then the smallest error to the pair's F / H; default 0 = all; guidedmatch sfm uses 1000: the mapper's time follows its observations; only above --cap-above inliers in all; "
                         "below 100 COLMAP's mapper cannot pick an initial pair)")
+    add_cap_above_option(c)
     c.add_argument("--inlier-px", type=float, default=DEFAULT_INLIER_PX, metavar="PX",
                    help="with --geometry ours: the mapper gets the inliers within PX of their pair's F / H, at least "
                         f"15 per pair (default {DEFAULT_INLIER_PX:g}; the verdict decides at 3 px; 0 = all of them; "
@@ -205,7 +206,7 @@ def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict
 
 def cmd_colmap(args) -> int:
     from ..collection.sources import ColmapSource
-    from ..sfm.stages import describe_tightening, match_into_database, second_look_on
+    from ..sfm.stages import describe_cap, describe_tightening, match_into_database, second_look_on
 
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
@@ -217,7 +218,7 @@ def cmd_colmap(args) -> int:
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
                                max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
                                second_look={} if second_look_on(args.second_look, args.geometry) else None,
-                               inlier_px=args.inlier_px)
+                               inlier_px=args.inlier_px, cap_above=args.cap_above)
     if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:
@@ -229,8 +230,7 @@ def cmd_colmap(args) -> int:
     if (tight := done["inlier_px"]) is not None:
         print(f"mapper     : {describe_tightening(tight)}")
     if (cap := done["inlier_cap"]) is not None:
-        print(f"mapper     : {cap['inliers_after']:,} of {cap['inliers_before']:,} inliers kept (at most "
-              f"{cap['max_inliers']} per pair, spread; {cap['pairs_capped']} pairs capped, {cap['time_s']:.2f} s)")
+        print(f"mapper     : {describe_cap(cap)}")
     status = _finish(done["report"], cfg.log_path, args.timeline)
     print(f"next       : guidedmatch map {db} IMAGE_DIR OUT_DIR   (pycolmap's mapper; or colmap mapper "
           f"--database_path {db} --image_path IMAGE_DIR --output_path OUT_DIR)")

@@ -104,3 +104,16 @@ def nonneg_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {v}")
     return v
 
+
+
+#: ``guidedmatch.sfm.config.CAP_ABOVE_INLIERS``, written out: importing guidedmatch.sfm here would slow the start-up of
+#: every command (tests/test_sfm.py checks the two agree)
+CAP_ABOVE_DEFAULT = 100_000
+
+
+def add_cap_above_option(p: argparse.ArgumentParser) -> None:
+    """``--cap-above N`` of ``guidedmatch sfm`` and ``guidedmatch colmap``."""
+    p.add_argument("--cap-above", type=nonneg_int, default=CAP_ABOVE_DEFAULT, metavar="N",
+                   help="apply --max-inliers-per-pair only when the database holds more than N verified inliers in "
+                        f"all (default {CAP_ABOVE_DEFAULT}: a few images map in seconds, and with all their inliers "
+                        "more accurately; 0 = always; docs/sfm.md)")

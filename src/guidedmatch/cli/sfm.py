@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..base import DEFAULT_INLIER_PX
 from ..config import MODES
-from .common import parse_kv, positive_int
+from .common import add_cap_above_option, parse_kv, positive_int
 
 __all__ = ["add_commands", "cmd_extract", "cmd_map", "cmd_sfm", "add_extraction_options", "add_mapping_options"]
 
@@ -56,7 +56,7 @@ def _conf(args, **extra):
     from ..sfm import SfmConfig
 
     names = ("detector", "max_features", "max_image_size", "peak_threshold", "camera_model", "camera",
-             "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "inlier_px",
+             "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "cap_above", "inlier_px",
              "workers", "scheduler", "mapper", "seed", "second_look", "pipeline")
     kw = {k: getattr(args, k) for k in names if hasattr(args, k)}
     if getattr(args, "config", None):
@@ -195,8 +195,9 @@ def add_commands(sub, parents) -> None:
                    "(the matcher's verdict, default) or colmap (pycolmap's verification)")
     s.add_argument("--max-inliers-per-pair", type=int, default=1000, metavar="K", help="inlier matches "
                    "per pair handed to the mapper, spread over the image, best first: keypoints in the most verified pairs, "
-                   "then the smallest error to the pair's F / H (default 1000; 0 = all): the mapper's time follows "
-                   "its observations, and 1000 gave poses at least as good as all of them (docs/sfm.md)")
+                   "then the smallest error to the pair's F / H (default 1000; 0 = all), when the database holds more "
+                   "than --cap-above inliers in all: the mapper's time follows its observations (docs/sfm.md)")
+    add_cap_above_option(s)
     s.add_argument("--inlier-px", type=float, default=DEFAULT_INLIER_PX, metavar="PX", help="with --geometry ours: "
                    "the mapper gets the inliers within PX of their pair's F / H, at least 15 per pair (default "
                    f"{DEFAULT_INLIER_PX:g}; the verdict decides at 3 px; 0 = all: docs/collections.md)")

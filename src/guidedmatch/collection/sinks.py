@@ -313,10 +313,16 @@ class ColmapSink(MatchSink):
         return len(todo)
 
     def cap_inliers(self, max_inliers: int, *, grid: int = 16, order: str = "track",
-                    track_px: float = DEFAULT_INLIER_PX) -> dict:
+                    track_px: float = DEFAULT_INLIER_PX, above: int = 0) -> dict:
         """Keep at most ``max_inliers`` inlier matches in every two-view geometry of the database, spread over
         image 1 and best first (:func:`guidedmatch.geometry.spread_matches`: a ``grid x grid`` lattice, the
-        best-ranked match of each cell first, round after round).
+        best-ranked match of each cell first, round after round) -- only when the database holds more than
+        ``above`` inliers in all (0: always; else nothing changes and the record says ``applied: False``).
+
+        ``above`` -- the cap is a time measure (below), and a small mapper input maps in seconds: ``guidedmatch
+        sfm`` caps only above 100,000 inliers (:data:`guidedmatch.sfm.config.CAP_ABOVE_INLIERS`, where the reasons
+        are). Decided on the inliers the geometry rows hold when the cap runs (after an earlier cap: the capped
+        counts).
 
         ``order`` -- which inliers of a cell are the best (:data:`CAP_ORDERS`):
 
@@ -341,8 +347,9 @@ class ColmapSink(MatchSink):
         Works on any COLMAP database: our geometries or COLMAP's own verification.
 
         Why: the mapper's bundle adjustments cost what its observations cost (docs/collections.md, "How many inliers
-        the mapper needs"). Returns ``{"max_inliers", "grid", "order", "pairs", "pairs_capped", "inliers_before",
-        "inliers_after", "time_s"}`` (``pairs`` = geometries with inliers; ``time_s`` includes the track count).
+        the mapper needs"). Returns ``{"max_inliers", "grid", "order", "above", "applied", "pairs", "pairs_capped",
+        "inliers_before", "inliers_after", "time_s"}`` (``pairs`` = geometries with inliers; ``time_s`` includes the
+        track count).
         """
         from ..geometry import spread_matches
         from ..validation import check_choice, check_number
@@ -352,7 +359,17 @@ class ColmapSink(MatchSink):
         check_number("cap_inliers", "grid", grid, lo=1, integer=True)
         check_choice("cap_inliers", "order", order, CAP_ORDERS)
         check_number("cap_inliers", "track_px", track_px, lo=0, lo_open=True)
+        check_number("cap_inliers", "above", above, lo=0, integer=True)
         t0 = time.perf_counter()
+        if above:
+            if self._db is None:
+                raise OutputError(f"ColmapSink({self.path}) is closed")
+            counts = np.asarray(self._db.read_two_view_geometry_num_inliers()[1], dtype=np.int64)
+            total = int(counts.sum())
+            if total <= above:
+                return {"max_inliers": int(max_inliers), "grid": int(grid), "order": order, "above": int(above),
+                        "applied": False, "pairs": int(np.count_nonzero(counts)), "pairs_capped": 0,
+                        "inliers_before": total, "inliers_after": total, "time_s": time.perf_counter() - t0}
         degree = self._keypoint_degrees(float(track_px)) if order == "track" else None
 
         def rows(db, iid):
@@ -385,8 +402,8 @@ class ColmapSink(MatchSink):
             return np.sort(spread_matches(kp1[m[:, 0]], size1, score, max_inliers, grid))
 
         report = self._rewrite_inliers(lambda counts: counts > max_inliers, rows, keep)
-        return {"max_inliers": int(max_inliers), "grid": int(grid), "order": order, "pairs": report["pairs"],
-                "pairs_capped": report["pairs_rewritten"], "inliers_before": report["inliers_before"],
+        return {"max_inliers": int(max_inliers), "grid": int(grid), "order": order, "above": int(above),
+                "applied": True, "pairs": report["pairs"], "pairs_capped": report["pairs_rewritten"], "inliers_before": report["inliers_before"],
                 "inliers_after": report["inliers_after"], "time_s": time.perf_counter() - t0}
 
     def _keypoint_degrees(self, px: float) -> dict[int, np.ndarray]:
@@ -511,10 +528,10 @@ class ColmapSink(MatchSink):
 
 
 def cap_two_view_inliers(database_path: str | os.PathLike, max_inliers: int, *, grid: int = 16,
-                         order: str = "track") -> dict:
+                         order: str = "track", above: int = 0) -> dict:
     """:meth:`ColmapSink.cap_inliers` on a COLMAP database (under the sink's write lock), e.g. after
     ``colmap exhaustive_matcher``: every two-view geometry keeps at most ``max_inliers`` spread, best-first inliers
-    (``order``: :data:`CAP_ORDERS`).
+    (``order``: :data:`CAP_ORDERS`) -- when the database holds more than ``above`` inliers in all (0: always).
 
     >>> cap_two_view_inliers("missing.db", 1000)
     Traceback (most recent call last):
@@ -522,7 +539,7 @@ def cap_two_view_inliers(database_path: str | os.PathLike, max_inliers: int, *, 
     guidedmatch.errors.DatabaseError: COLMAP database not found: missing.db
     """
     with ColmapSink(database_path, geometry="none") as sink:
-        return sink.cap_inliers(max_inliers, grid=grid, order=order)
+        return sink.cap_inliers(max_inliers, grid=grid, order=order, above=above)
 
 
 def tighten_two_view_inliers(database_path: str | os.PathLike, max_error_px: float = DEFAULT_INLIER_PX, *,

@@ -9,7 +9,10 @@ Protocol, per scene with reference poses (:data:`SCENES`):
    * ``ours``: ``guidedmatch colmap DB`` at its defaults;
    * ``ours+cap``: the same database, then :func:`guidedmatch.collection.sinks.cap_two_view_inliers` with 1000 --
      exactly what ``guidedmatch colmap --max-inliers-per-pair 1000`` runs after matching (``guidedmatch sfm``'s
-     default); its time is ``ours``' plus the cap's; ``ours+capN``: the same with a cap of N (e.g. ``ours+cap500``);
+     default, whatever the total); its time is ``ours``' plus the cap's; ``ours+capN``: the same with a cap of N
+     (e.g. ``ours+cap500``);
+   * ``ours+sfm``: the same with ``guidedmatch sfm``'s rule -- the cap of 1000 only when the database holds more than
+     :data:`~guidedmatch.sfm.config.CAP_ABOVE_INLIERS` inliers in all (``--cap-above``), else ``ours``' database;
    * analysis variants (:mod:`guidedmatch.evaluation.accuracy_analysis`): a method's database rewritten to remove or
      restore one candidate cause;
 3. ``pycolmap.incremental_mapping`` with ``IncrementalPipelineOptions.random_seed`` = 0, 1, 2 (largest model);
@@ -45,7 +48,7 @@ from .meta import default_cache
 from .poses import (CameraPose, aligned_centre_errors, error_by_sequence_distance, evaluate_poses,
                     poses_from_reconstruction)
 
-BASE_METHODS = ("colmap", "ours", "ours+cap")
+BASE_METHODS = ("colmap", "ours", "ours+cap", "ours+sfm")
 #: ours, then :func:`guidedmatch.collection.rescue.rescue_pairs` (the rejected pairs a third view confirms), with and
 #: without the cap
 RESCUE_METHODS = ("ours+rescue", "ours+rescue+cap")
@@ -54,13 +57,13 @@ CAP = 1000  # inliers per pair of ``ours+cap`` (guidedmatch sfm's default)
 
 
 def cap_of(method: str) -> int | None:
-    """The inlier cap of a capped method: ``ours+cap`` -> :data:`CAP`, ``ours+capN`` -> N (another cap to compare),
-    else None.
+    """The inlier cap of a capped method: ``ours+cap`` and ``ours+sfm`` -> :data:`CAP`, ``ours+capN`` -> N (another
+    cap to compare), else None.
 
-    >>> cap_of("ours+cap"), cap_of("ours+cap500"), cap_of("ours"), cap_of("ours+capx")
-    (1000, 500, None, None)
+    >>> cap_of("ours+cap"), cap_of("ours+sfm"), cap_of("ours+cap500"), cap_of("ours"), cap_of("ours+capx")
+    (1000, 1000, 500, None, None)
     """
-    if method == "ours+cap":
+    if method in ("ours+cap", "ours+sfm"):
         return CAP
     tail = method[len("ours+cap"):] if method.startswith("ours+cap") else ""
     return int(tail) if tail.isdigit() and int(tail) > 0 else None
@@ -205,9 +208,12 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
         copy_database(cache / "ours" / "database.db", db)
         from ..collection.sinks import cap_two_view_inliers
 
-        cap = cap_two_view_inliers(db, cap_of(method))
+        from ..sfm.config import CAP_ABOVE_INLIERS
+
+        above = CAP_ABOVE_INLIERS if method == "ours+sfm" else 0   # guidedmatch sfm's rule, or the cap whatever the total
+        cap = cap_two_view_inliers(db, cap_of(method), above=above)
         rec = {"method": method, "match_s": base["match_s"] + cap["time_s"], "cap": cap,
-               "command": f"guidedmatch colmap DB --max-inliers-per-pair {cap_of(method)}"}
+               "command": f"guidedmatch colmap DB --max-inliers-per-pair {cap_of(method)} --cap-above {above}"}
     elif method.startswith("ours@"):   # ours with matcher settings: ours@max_unguided=0.1 (guidedmatch colmap --config), ";" between several
         copy_database(cache / "features.db", db)
         warm_up(cache, mdir)
@@ -511,15 +517,19 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
               "from COLMAP's matches (seed 0), and > 4 px from the reference epipolar lines.", "",
               markdown_table(allrows), "", "Reference poses:", ""]
         md += [f"* {s}: {d}" for s, d in res["scenes"].items()]
+        from ..sfm.config import CAP_ABOVE_INLIERS
         from .accuracy_analysis import VARIANTS
 
         legend = {"colmap": "pycolmap.match_exhaustive, COLMAP's defaults", "ours": "guidedmatch colmap DB (defaults)",
-                  "ours+cap": f"guidedmatch colmap DB --max-inliers-per-pair {CAP} (guidedmatch sfm's default)",
+                  "ours+cap": f"guidedmatch colmap DB --max-inliers-per-pair {CAP} --cap-above 0 (the cap whatever "
+                              "the total)",
+                  "ours+sfm": f"guidedmatch colmap DB --max-inliers-per-pair {CAP} (--cap-above {CAP_ABOVE_INLIERS}: "
+                              f"guidedmatch sfm's defaults -- the cap only above {CAP_ABOVE_INLIERS:,} inliers in all)",
                   "ours+rescue": "ours, then collection.rescue.rescue_pairs (rejected pairs matched by COLMAP's matcher, "
                                  "kept when a third view confirms them)",
                   "ours+rescue+cap": "ours+rescue, then the cap",
                   **{m: f"guidedmatch colmap DB --max-inliers-per-pair {cap_of(m)} (another cap)"
-                     for m in (r["method"] for r in allrows) if cap_of(m) and m != "ours+cap"},
+                     for m in (r["method"] for r in allrows) if cap_of(m) and m not in ("ours+cap", "ours+sfm")},
                   **{m: "guidedmatch colmap DB " + " ".join(ours_words(m)) for m in (r["method"] for r in allrows)
                      if m.startswith("ours@")},
                   **{k: f"analysis, not a method: {v[1]} (matching time: the base's)" for k, v in VARIANTS.items()}}

@@ -103,8 +103,10 @@ def report_markdown(report: dict) -> str:
                  + (f"; the mapper gets those within {ti['max_error_px']:g} px of their pair's F / H (at least "
                     f"{ti['min_inliers']}: {ti['inliers_before']:,} -> {ti['inliers_after']:,})"
                     if (ti := ma.get("inlier_px")) else "")
-                 + (f"; the mapper gets at most {ic['max_inliers']} per pair ({ic['pairs_capped']} pairs capped "
-                    f"this run: {ic['inliers_before']:,} -> {ic['inliers_after']:,})" if (ic := ma.get("inlier_cap")) else "")
+                 + ((f"; the mapper gets at most {ic['max_inliers']} per pair ({ic['pairs_capped']} pairs capped "
+                     f"this run: {ic['inliers_before']:,} -> {ic['inliers_after']:,})" if ic.get("applied", True) else
+                     f"; the mapper gets all of them (the cap of {ic['max_inliers']} per pair applies above "
+                     f"{ic['above']:,} inliers in all)") if (ic := ma.get("inlier_cap")) else "")
                  + " |")
     mp = st["mapping"]
     lines.append(f"| mapping | {_fmt_s(mp['time_s'])} | {_mem(mp)} | {mapper_label(mp)}, "

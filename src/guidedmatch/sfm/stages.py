@@ -168,7 +168,8 @@ def check_output(conf: SfmConfig, paths: SfmPaths, project_path: Path, *, matchi
                               f"{project['extraction']}; rerun with the same options or use a new output path")
         if matching:
             # projects from before max_inliers_per_pair / inlier_px handed the mapper every inlier: they read as 0
-            old_matching = ({"max_inliers_per_pair": 0, "inlier_px": 0.0, **old["matching"]}
+            # (and before cap_above: they capped whatever the total, i.e. 0)
+            old_matching = ({"max_inliers_per_pair": 0, "inlier_px": 0.0, "cap_above": 0, **old["matching"]}
                             if isinstance(old.get("matching"), dict) else None)
             if _num_matched_pairs(paths.database) and old_matching is not None and old_matching != project["matching"]:
                 raise OutputError(f"the pairs in {paths.database} were matched with {old.get('matching')}, not "
@@ -302,12 +303,13 @@ def second_look_on(wanted: bool | None, geometry: str) -> bool:
 
 def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
                         max_inliers_per_pair: int = 0, expand: dict | None = None,
-                        second_look: dict | None = None, inlier_px: float = 0.0) -> dict:
+                        second_look: dict | None = None, inlier_px: float = 0.0, cap_above: int = 0) -> dict:
     """The matching stage's work, shared by ``guidedmatch colmap`` and :func:`match_main`: the collection engine over
     ``pairs`` into the COLMAP ``database`` (pairs already there skipped); with ``geometry="colmap"`` pycolmap's
     verification of the pairs without a geometry; then (``geometry="ours"``, ``inlier_px`` > 0) only the inliers
     within ``inlier_px`` of their pair's F / H (at least 15: :meth:`~guidedmatch.collection.ColmapSink.tighten_inliers`),
-    then at most ``max_inliers_per_pair`` inliers per pair for the mapper (0: all). ``expand`` (ExpansionConfig
+    then at most ``max_inliers_per_pair`` inliers per pair for the mapper (0: all) when the database holds more
+    than ``cap_above`` inliers in all (0: whatever the total). ``expand`` (ExpansionConfig
     fields): then the verified expansion -- the pairs closing a triangle of verified pairs, in rounds
     (:func:`guidedmatch.collection.expansion.match_collection_expanded`).
     ``second_look`` (SecondLookConfig fields; ``geometry="ours"`` only): then the rejected pairs that verified
@@ -345,7 +347,7 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
         # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
         # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
         if max_inliers_per_pair:
-            cap = sink.cap_inliers(max_inliers_per_pair)
+            cap = sink.cap_inliers(max_inliers_per_pair, above=cap_above)
     return {"report": report, "match_time_s": t_match, "verified": verified, "verify_time_s": t_verify,
             "second_look": look, "inlier_px": tight, "inlier_cap": cap}
 
@@ -360,6 +362,23 @@ def describe_tightening(rec: dict) -> str:
     return (f"{rec['inliers_after']:,} of {rec['inliers_before']:,} inliers within {rec['max_error_px']:g} px of "
             f"their pair's F / H (at least {rec['min_inliers']} per pair; {rec['pairs_tightened']} of {rec['pairs']} "
             f"pairs tightened, {rec['time_s']:.2f} s)")
+
+
+def describe_cap(rec: dict) -> str:
+    """One line for the record of :meth:`~guidedmatch.collection.ColmapSink.cap_inliers`.
+
+    >>> describe_cap({"max_inliers": 1000, "above": 100000, "applied": False, "pairs": 28, "pairs_capped": 0,
+    ...               "inliers_before": 51000, "inliers_after": 51000, "time_s": 0.0})
+    'all 51,000 inliers (28 pairs; the cap of 1000 per pair applies above 100,000 in all)'
+    >>> describe_cap({"max_inliers": 1000, "above": 100000, "applied": True, "pairs": 300, "pairs_capped": 250,
+    ...               "inliers_before": 400000, "inliers_after": 190000, "time_s": 1.25})
+    '190,000 of 400,000 inliers (at most 1000 per pair, spread, best first; 250 of 300 pairs capped, 1.25 s)'
+    """
+    if not rec.get("applied", True):
+        return (f"all {rec['inliers_after']:,} inliers ({rec['pairs']} pairs; the cap of {rec['max_inliers']} per "
+                f"pair applies above {rec['above']:,} in all)")
+    return (f"{rec['inliers_after']:,} of {rec['inliers_before']:,} inliers (at most {rec['max_inliers']} per pair, "
+            f"spread, best first; {rec['pairs_capped']} of {rec['pairs']} pairs capped, {rec['time_s']:.2f} s)")
 
 
 #: ``pairs="auto"``: every pair up to this many images, else retrieval pairs + the verified expansion
@@ -423,7 +442,7 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
             done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
                                        max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand,
                                        second_look={} if second_look_on(conf.second_look, conf.geometry) else None,
-                                       inlier_px=conf.inlier_px)
+                                       inlier_px=conf.inlier_px, cap_above=conf.cap_above)
         finally:
             source.close()
         pairs = database_pair_stats(paths.database)
@@ -438,8 +457,7 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
         say(conf, f"      mapper's inliers: {describe_tightening(tight)}")
     cap = done["inlier_cap"]
     if cap is not None:
-        say(conf, f"      mapper's inliers: {cap['inliers_after']:,} of {cap['inliers_before']:,} (at most "
-                  f"{cap['max_inliers']} per pair; {cap['pairs_capped']} pairs capped)")
+        say(conf, f"      mapper's inliers: {describe_cap(cap)}")
     collection = done["report"].to_dict()
     elapsed = time.perf_counter() - t0
     if early is not None:
