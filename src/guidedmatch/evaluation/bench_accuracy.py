@@ -272,14 +272,39 @@ def retime(cache: Path, repeats: int, threads: int) -> dict:
     return rec
 
 
+def same_database_as(method: str, cache: Path) -> str | None:
+    """``ours+sfm``'s database is, byte for byte, ``ours+cap``'s when sfm's rule applied the cap and ``ours``'s when
+    it did not (the cap is deterministic): the method whose models it shares, or None (any other method, or not
+    matched yet).
+
+    >>> same_database_as("ours", Path("nowhere"))
+    """
+    if method != "ours+sfm":
+        return None
+    rec = _read_json(cache / "ours_sfm" / "match.json")
+    if not rec or "cap" not in rec:
+        return None
+    return "ours+cap" if rec["cap"].get("applied", True) else "ours"
+
+
 def mapping(method: str, cache: Path, image_dir: Path, seed: int, threads: int, redo: bool = False) -> dict:
-    """Stage 3, cached: ``cache/<method>/seed<k>/sparse/0`` (largest model) + ``map.json``."""
+    """Stage 3, cached: ``cache/<method>/seed<k>/sparse/0`` (largest model) + ``map.json``. A method whose database
+    is another's (:func:`same_database_as`) takes that method's model of the seed, mapped if need be (``same_as``)."""
     from ..sfm import colmap_log_level, run_mapping
 
     sdir = cache / method.replace("+", "_") / f"seed{seed}"
     rec = _read_json(sdir / "map.json")
     if rec and not redo:
         return dict(rec, cached=True)
+    same = same_database_as(method, cache)
+    if same is not None and (cache / same.replace("+", "_") / "database.db").is_file():
+        other = mapping(same, cache, image_dir, seed, threads)
+        if sdir.exists():
+            shutil.rmtree(sdir)
+        shutil.copytree(cache / same.replace("+", "_") / f"seed{seed}", sdir)
+        rec = dict({k: v for k, v in other.items() if k != "cached"}, same_as=same)
+        _write_json(sdir / "map.json", rec)
+        return dict(rec, cached=False)
     sdir.mkdir(parents=True, exist_ok=True)
     load = _load()
     with colmap_log_level(1):
