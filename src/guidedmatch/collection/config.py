@@ -30,12 +30,7 @@ __all__ = ["CollectionConfig", "COLLECTION_MATCHER_DEFAULTS", "collection_matche
 #: features, COLMAP's mapper, 3 seeds (2026-12-05): P8 0.205 -> 0.199 deg, P25 0.363 -> 0.364 (AUC@1 0.616 ->
 #: 0.625), buddha 0.205 -> 0.206, fox 0.487 -> 0.481 (AUC@1 0.489 -> 0.495), all at least COLMAP's matcher's; a
 #: one-off match keeps the paper's 3 (its experiments).
-#: ``band_px=3``: the final pass searches 3 px either side of the epipolar line instead of the paper's 5 -- the
-#: verdict counts an inlier within 3 px of F and the mapper gets those within 1.5 px, so a candidate 3-5 px off the
-#: line could only be a distractor for the ratio test: fox, 300 pairs in one thread: final pass -27 to -31 %, the
-#: pair -17 to -20 %, inliers +3.8 % (P8 and buddha, whose pairs are fewer or mostly rejected: the same time within
-#: noise, inliers +1.3 % / +4.6 %). Accuracy: accuracy history, "fourteenth round".
-COLLECTION_MATCHER_DEFAULTS = {"exact_rent": 0.0, "planar_inliers": "larger", "num_updates": 1, "band_px": 3.0}
+COLLECTION_MATCHER_DEFAULTS = {"exact_rent": 0.0, "planar_inliers": "larger", "num_updates": 1}
 
 
 def collection_matcher_config(value=None) -> MatcherConfig:
