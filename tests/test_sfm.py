@@ -219,7 +219,18 @@ def test_sfm_end_to_end_and_resume(rendered, tmp_path):
     assert "were matched with" in line
     line = _one_error_line(run_cli(*args, "--inlier-px", "3"))   # the mapper's inliers are part of the matching
     assert "were matched with" in line and "'inlier_px': 3.0" in line
+    line = _one_error_line(run_cli(*args, "--cap-above", "0"))   # the cap's rule too: it decides the mapper's inliers
+    assert "were matched with" in line and "'cap_above': 0" in line
+    # a project recorded before --cap-above capped whatever the total: it reads as cap_above 0, and the new default
+    # (100,000) is refused on it with the options to rerun with
+    project = out / "sfm_project.json"
+    rec = json.loads(project.read_text())
+    del rec["matching"]["cap_above"]
+    project.write_text(json.dumps(rec))
+    line = _one_error_line(run_cli(*args))
+    assert "were matched with" in line and "'cap_above': 100000" in line
     assert database_pair_stats(out / "database.db") == before
+    assert run_cli(*args, "--cap-above", "0").returncode == 0
 
 
 def test_sfm_colmap_verification_single_camera(rendered, tmp_path):
