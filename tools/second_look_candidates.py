@@ -1,7 +1,8 @@
-"""What the second look's rejected candidates yield, by their chain support: for a first-pass database (``guidedmatch
-colmap DB --no-second-look --inlier-px 0``, every pair of the images tried) and the same database after the second
-look, the rejected pairs the second look would take (``collection.second_look._candidates``) binned by chained
-correspondences, with how many of them the second look verified and their inliers (closing note of 2026-12-06).
+"""What the second look's rejected candidates yield, by their chain support: for a first-pass database
+(``guidedmatch colmap DB --no-second-look --inlier-px 0``) and the same database after the second look (both read
+as the second look reads them), the rejected pairs the second look would take (``collection.second_look._candidates``)
+binned by chained correspondences, with how many of them the second look verified and their inliers (closing note of
+2026-12-06).
 
 Usage::
 
@@ -10,37 +11,24 @@ Usage::
 from __future__ import annotations
 
 import collections
-import itertools
 import sys
 
-import numpy as np
 
+def read(path: str) -> tuple[set, dict, dict]:
+    """The second look's own view of a database (``second_look._read_inliers``): tried pairs, inliers of the verified
+    ones, keypoint counts."""
+    from guidedmatch.collection.second_look import _read_inliers
+    from guidedmatch.collection.sinks import ColmapSink
 
-def verified_inliers(path: str) -> tuple[dict, dict]:
-    """``({(name1, name2): inlier matches} of the verified pairs, {name: keypoints})``."""
-    import pycolmap
-
-    db = pycolmap.Database.open(path)
-    try:
-        names = {i.image_id: i.name for i in db.read_all_images()}
-        nkp = {names[i]: db.read_keypoints(i).shape[0] for i in names}
-        inl = {}
-        pids, counts = db.read_two_view_geometry_num_inliers()
-        for pid, n in zip(pids, counts):
-            if n > 0:
-                i1, i2 = pycolmap.pair_id_to_image_pair(int(pid))
-                inl[(names[i1], names[i2])] = np.asarray(db.read_two_view_geometry(i1, i2).inlier_matches).reshape(-1, 2)
-    finally:
-        db.close()
-    return inl, nkp
+    with ColmapSink(path, geometry="ours") as sink:
+        return _read_inliers(sink)
 
 
 def main() -> None:
     from guidedmatch.collection.second_look import SecondLookConfig, _candidates
 
-    inl, nkp = verified_inliers(sys.argv[1])
-    after, _ = verified_inliers(sys.argv[2])
-    tried = {frozenset(p) for p in itertools.combinations(sorted(nkp), 2)}
+    tried, inl, nkp = read(sys.argv[1])
+    _, after, _ = read(sys.argv[2])
     pairs, support, _ = _candidates(tried, inl, nkp, set(), SecondLookConfig())
     have = {frozenset(p) for p in inl}
     got = {frozenset(p): len(m) for p, m in after.items()}

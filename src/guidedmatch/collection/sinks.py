@@ -361,15 +361,15 @@ class ColmapSink(MatchSink):
         check_number("cap_inliers", "track_px", track_px, lo=0, lo_open=True)
         check_number("cap_inliers", "above", above, lo=0, integer=True)
         t0 = time.perf_counter()
+        rec = {"max_inliers": int(max_inliers), "grid": int(grid), "order": order, "above": int(above)}
         if above:
             if self._db is None:
                 raise OutputError(f"ColmapSink({self.path}) is closed")
             counts = np.asarray(self._db.read_two_view_geometry_num_inliers()[1], dtype=np.int64)
             total = int(counts.sum())
             if total <= above:
-                return {"max_inliers": int(max_inliers), "grid": int(grid), "order": order, "above": int(above),
-                        "applied": False, "pairs": int(np.count_nonzero(counts)), "pairs_capped": 0,
-                        "inliers_before": total, "inliers_after": total, "time_s": time.perf_counter() - t0}
+                return dict(rec, applied=False, pairs=int(np.count_nonzero(counts)), pairs_capped=0,
+                            inliers_before=total, inliers_after=total, time_s=time.perf_counter() - t0)
         degree = self._keypoint_degrees(float(track_px)) if order == "track" else None
 
         def rows(db, iid):
@@ -402,9 +402,9 @@ class ColmapSink(MatchSink):
             return np.sort(spread_matches(kp1[m[:, 0]], size1, score, max_inliers, grid))
 
         report = self._rewrite_inliers(lambda counts: counts > max_inliers, rows, keep)
-        return {"max_inliers": int(max_inliers), "grid": int(grid), "order": order, "above": int(above),
-                "applied": True, "pairs": report["pairs"], "pairs_capped": report["pairs_rewritten"], "inliers_before": report["inliers_before"],
-                "inliers_after": report["inliers_after"], "time_s": time.perf_counter() - t0}
+        return dict(rec, applied=True, pairs=report["pairs"], pairs_capped=report["pairs_rewritten"],
+                    inliers_before=report["inliers_before"], inliers_after=report["inliers_after"],
+                    time_s=time.perf_counter() - t0)
 
     def _keypoint_degrees(self, px: float) -> dict[int, np.ndarray]:
         """Per image id, for every keypoint, the number of verified pairs (geometry rows with inliers) whose raw

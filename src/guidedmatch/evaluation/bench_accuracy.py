@@ -281,7 +281,7 @@ def same_database_as(method: str, cache: Path) -> str | None:
     """
     if method != "ours+sfm":
         return None
-    rec = _read_json(cache / "ours_sfm" / "match.json")
+    rec = _read_json(cache / method.replace("+", "_") / "match.json")
     if not rec or "cap" not in rec:
         return None
     return "ours+cap" if rec["cap"].get("applied", True) else "ours"
@@ -297,11 +297,12 @@ def mapping(method: str, cache: Path, image_dir: Path, seed: int, threads: int, 
     if rec and not redo:
         return dict(rec, cached=True)
     same = same_database_as(method, cache)
-    if same is not None and (cache / same.replace("+", "_") / "database.db").is_file():
+    same_dir = cache / same.replace("+", "_") if same is not None else None
+    if same_dir is not None and (same_dir / "database.db").is_file():
         other = mapping(same, cache, image_dir, seed, threads)
         if sdir.exists():
             shutil.rmtree(sdir)
-        shutil.copytree(cache / same.replace("+", "_") / f"seed{seed}", sdir)
+        shutil.copytree(same_dir / f"seed{seed}", sdir)
         rec = dict({k: v for k, v in other.items() if k != "cached"}, same_as=same)
         _write_json(sdir / "map.json", rec)
         return dict(rec, cached=False)
