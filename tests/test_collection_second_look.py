@@ -309,3 +309,30 @@ def test_cli_says_when_the_second_look_cannot_run(matched_db, tmp_path, capsys):
     shutil.copyfile(matched_db, db)
     assert cli_main(["colmap", str(db), "--geometry", "colmap", "--no-progress", "--log", "none"]) == 0
     assert "second look" not in capsys.readouterr().out
+
+
+def test_cli_second_look_settings_reach_it_and_are_checked_before_any_work(matched_db, tmp_path, capsys):
+    db = tmp_path / "db.db"
+    shutil.copyfile(matched_db, db)
+    _reject(db, _strongest(db, 1))
+
+    def geometries():
+        con = sqlite3.connect(db)
+        try:
+            return sorted(con.execute("SELECT pair_id, rows FROM two_view_geometries"))
+        finally:
+            con.close()
+
+    before = geometries()
+    for flags, words in ((["--second-look-config", "no_such=1"], "no_such"),
+                         (["--second-look-config", "min_chained=0"], "min_chained"),
+                         (["--no-second-look", "--second-look-config", "weak_below=0"], "needs the second look")):
+        assert cli_main(["colmap", str(db), *flags, "--no-progress", "--log", "none"]) == 2
+        err = capsys.readouterr().err
+        assert "--second-look-config" in err and words in err, err
+        assert geometries() == before   # refused before any work
+    # a chain requirement no pair meets: the rejected pair is not looked at again (by default it is: the test above)
+    assert cli_main(["colmap", str(db), "--second-look-config", "min_chained=1000000", "--second-look-config",
+                     "weak_below=0", "--no-progress", "--log", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "second look:" in out and "0 newly verified" in out, out

@@ -189,6 +189,28 @@ def add_second_look_option(p: argparse.ArgumentParser) -> None:
                         "that verified neighbours tie together by >= 16 chained matches -- the wide-baseline pairs an "
                         "exhaustive matcher verifies -- drawing the keypoints the chains point to first (default: on "
                         "with --geometry ours, which it reads back; --no-second-look: off; docs/collections.md)")
+    p.add_argument("--second-look-config", action="append", metavar="KEY=VALUE",
+                   help="a setting of the second look (SecondLookConfig), e.g. weak_below=0 or min_chained=32 "
+                        "(repeatable; docs/collections.md)")
+
+
+def second_look_settings(args) -> dict | None:
+    """The second look's settings from ``--second-look`` / ``--second-look-config`` (validated before any work), or
+    None when it does not run."""
+    from ..collection.second_look import SecondLookConfig
+    from ..sfm.stages import second_look_on
+    from ..validation import config_from
+
+    items = getattr(args, "second_look_config", None)
+    on = second_look_on(args.second_look, args.geometry)
+    if items and not on:
+        raise ConfigError("--second-look-config needs the second look (--geometry ours, without --no-second-look)")
+    kv = parse_kv(items, "--second-look-config")
+    try:
+        config_from(SecondLookConfig, kv)
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise ConfigError(f"bad --second-look-config: {exc}") from None
+    return kv if on else None
 
 
 def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict | None:
@@ -206,7 +228,7 @@ def expansion_wanted(spec: str, expand: bool | None, rounds: int | None) -> dict
 
 def cmd_colmap(args) -> int:
     from ..collection.sources import ColmapSource
-    from ..sfm.stages import describe_cap, describe_tightening, match_into_database, second_look_on
+    from ..sfm.stages import describe_cap, describe_tightening, match_into_database
 
     db = Path(args.database)
     if args.max_inliers_per_pair < 0:
@@ -214,10 +236,11 @@ def cmd_colmap(args) -> int:
     if not args.inlier_px >= 0:
         raise ConfigError(f"--inlier-px must be >= 0 (0 = all inliers); got {args.inlier_px}")
     expand = expansion_wanted(args.pairs, args.expand, args.expand_rounds)
+    look_settings = second_look_settings(args)
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
                                max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
-                               second_look={} if second_look_on(args.second_look, args.geometry) else None,
+                               second_look=look_settings,
                                inlier_px=args.inlier_px, cap_above=args.cap_above)
     if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")

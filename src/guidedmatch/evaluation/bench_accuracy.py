@@ -169,16 +169,18 @@ OURS_FLAGS = ("second_look", "no_second_look")   # ours@...;no_second_look: `gui
 
 def ours_words(method: str) -> list[str]:
     """The ``guidedmatch colmap`` words of an ``ours@...`` method (";" between several settings): a flag of
-    :data:`OURS_FLAGS` as itself, ``inlier_px=X`` as ``--inlier-px X`` (an option of the command), anything else a
-    matcher ``--config``.
+    :data:`OURS_FLAGS` as itself, ``inlier_px=X`` as ``--inlier-px X`` (an option of the command),
+    ``second_look.KEY=X`` as ``--second-look-config KEY=X``, anything else a matcher ``--config``.
 
-    >>> ours_words("ours@inlier_px=0;second_look;max_unguided=0.1")
-    ['--inlier-px', '0', '--second-look', '--config', 'max_unguided=0.1']
+    >>> ours_words("ours@inlier_px=0;second_look;max_unguided=0.1;second_look.weak_below=0")
+    ['--inlier-px', '0', '--second-look', '--config', 'max_unguided=0.1', '--second-look-config', 'weak_below=0']
     """
     words = []
     for kv in (kv for kv in method[len("ours@"):].split(";") if kv):
         words += ([f"--{kv.replace('_', '-')}"] if kv in OURS_FLAGS else
-                  ["--inlier-px", kv.split("=", 1)[1]] if kv.startswith("inlier_px=") else ["--config", kv])
+                  ["--inlier-px", kv.split("=", 1)[1]] if kv.startswith("inlier_px=") else
+                  ["--second-look-config", kv[len("second_look."):]] if kv.startswith("second_look.") else
+                  ["--config", kv])
     return words
 
 
