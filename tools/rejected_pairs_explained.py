@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from guidedmatch.collection.colmap_source import ColmapSource
 from guidedmatch.collection.config import collection_matcher_config
 from guidedmatch.matcher import match
@@ -46,8 +48,6 @@ def main(cache: Path, analysis: Path, scene: str, out: Path) -> None:
     print(f"{scene}: {len(res)} pairs COLMAP verifies and we do not, matched again in {time.time() - t0:.0f} s")
     print("| reference | COLMAP's inliers | pairs | first pass verifies | swapped verifies | bf verifies | bf's inliers (median) |")
     print("|---|---|---|---|---|---|---|")
-    import numpy as np
-
     for truth in (True, False):
         for lo, hi in ((15, 30), (30, 100), (100, 10**9)):
             sel = [r for r in res if r["true"] == truth and lo <= r["inliers"] < hi]
