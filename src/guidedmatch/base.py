@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Literal, get_args
 
 __all__ = ["Alignment", "APPROACHES", "RansacMethod", "USAC_METHOD_NAMES", "Verdict", "VERDICTS", "Failure",
-           "DEFAULT_INLIER_PX", "COLMAP_MIN_INLIERS"]
+           "DEFAULT_INLIER_PX", "DEFAULT_REFIT_DEG", "COLMAP_MIN_INLIERS"]
 
 #: Alignment approaches of :func:`guidedmatch.alignment.align_from_fundamental` (§III-E): the paper's four
 #: (``"a"``-``"d"``) plus ``"c_inplane"`` (the intended approach 3)
@@ -37,6 +37,11 @@ VERDICTS = {
 #: pixels of their pair's verified F (Sampson) or H (transfer error) -- the verdict decides at 3 px, the mapper
 #: gets the more precise ones (docs/collections.md, "The inliers the mapper gets")
 DEFAULT_INLIER_PX = 1.5
+#: ``--refit-below-deg``: before that selection, the F of a pair whose inliers' median triangulation angle (under the
+#: pose of E = K2^T F K1, the database's camera guesses) is below this many degrees is fitted again on its own
+#: inliers -- at small baselines the verdict's early F is least determined (docs/collections.md, "The inliers the
+#: mapper gets"; 0 = never)
+DEFAULT_REFIT_DEG = 3.0
 #: COLMAP's ``min_num_inliers``: a pair with fewer verified inliers is no edge of its view graph (our verdict's
 #: ``VerdictConfig.min_inliers`` default, and the floor of the mapper's inliers per pair under ``--inlier-px``)
 COLMAP_MIN_INLIERS = 15

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..base import DEFAULT_INLIER_PX
+from ..base import DEFAULT_INLIER_PX, DEFAULT_REFIT_DEG
 from ..config import MODES
 from ..errors import ConfigError, GuidedMatchError, InputError
 from ..features import writable_folder
@@ -93,6 +93,10 @@ def add_commands(sub, parents) -> None:
                    help="with --geometry ours: the mapper gets the inliers within PX of their pair's F / H, at least "
                         f"15 per pair (default {DEFAULT_INLIER_PX:g}; the verdict decides at 3 px; 0 = all of them; "
                         "docs/collections.md)")
+    c.add_argument("--refit-below-deg", type=float, default=DEFAULT_REFIT_DEG, metavar="DEG",
+                   help="with --inlier-px: first fit F again on its own inliers for the pairs whose median "
+                        f"triangulation angle is below DEG (small baselines, e.g. video frames; default "
+                        f"{DEFAULT_REFIT_DEG:g}; 0 = never; docs/collections.md)")
     add_matching_options(c, MODES)
     add_expansion_options(c)
     add_second_look_option(c)
@@ -235,13 +239,16 @@ def cmd_colmap(args) -> int:
         raise ConfigError(f"--max-inliers-per-pair must be >= 0 (0 = all inliers); got {args.max_inliers_per_pair}")
     if not args.inlier_px >= 0:
         raise ConfigError(f"--inlier-px must be >= 0 (0 = all inliers); got {args.inlier_px}")
+    if not 0 <= args.refit_below_deg <= 180:
+        raise ConfigError(f"--refit-below-deg must be in [0, 180] (0 = never); got {args.refit_below_deg}")
     expand = expansion_wanted(args.pairs, args.expand, args.expand_rounds)
     look_settings = second_look_settings(args)
     cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
     done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
                                max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
                                second_look=look_settings,
-                               inlier_px=args.inlier_px, cap_above=args.cap_above)
+                               inlier_px=args.inlier_px, refit_below_deg=args.refit_below_deg,
+                               cap_above=args.cap_above)
     if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..base import DEFAULT_INLIER_PX
+from ..base import DEFAULT_INLIER_PX, DEFAULT_REFIT_DEG
 from ..config import MODES
 from .common import add_cap_above_option, parse_kv, positive_int
 
@@ -56,7 +56,7 @@ def _conf(args, **extra):
     from ..sfm import SfmConfig
 
     names = ("detector", "max_features", "max_image_size", "peak_threshold", "camera_model", "camera",
-             "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "cap_above", "inlier_px",
+             "single_camera", "bad_images", "pairs", "mode", "geometry", "max_inliers_per_pair", "cap_above", "inlier_px", "refit_below_deg",
              "workers", "scheduler", "mapper", "seed", "second_look", "pipeline")
     kw = {k: getattr(args, k) for k in names if hasattr(args, k)}
     if getattr(args, "config", None):
@@ -201,6 +201,9 @@ def add_commands(sub, parents) -> None:
     s.add_argument("--inlier-px", type=float, default=DEFAULT_INLIER_PX, metavar="PX", help="with --geometry ours: "
                    "the mapper gets the inliers within PX of their pair's F / H, at least 15 per pair (default "
                    f"{DEFAULT_INLIER_PX:g}; the verdict decides at 3 px; 0 = all: docs/collections.md)")
+    s.add_argument("--refit-below-deg", type=float, default=DEFAULT_REFIT_DEG, metavar="DEG", help="with --inlier-px: "
+                   "first fit F again on its own inliers for the pairs whose median triangulation angle is below DEG "
+                   f"(small baselines; default {DEFAULT_REFIT_DEG:g}; 0 = never: docs/collections.md)")
     s.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=None,
                    help="match again the weak pairs and the rejected pairs that verified neighbours tie together by "
                         "chained matches, their chained keypoints drawn first (default: on with --geometry ours; "

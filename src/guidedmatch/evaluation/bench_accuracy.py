@@ -169,7 +169,8 @@ OURS_FLAGS = ("second_look", "no_second_look")   # ours@...;no_second_look: `gui
 
 def ours_words(method: str) -> list[str]:
     """The ``guidedmatch colmap`` words of an ``ours@...`` method (";" between several settings): a flag of
-    :data:`OURS_FLAGS` as itself, ``inlier_px=X`` as ``--inlier-px X`` (an option of the command),
+    :data:`OURS_FLAGS` as itself, ``inlier_px=X`` as ``--inlier-px X`` and ``refit_below_deg=X`` as
+    ``--refit-below-deg X`` (options of the command),
     ``second_look.KEY=X`` as ``--second-look-config KEY=X``, anything else a matcher ``--config``.
 
     >>> ours_words("ours@inlier_px=0;second_look;max_unguided=0.1;second_look.weak_below=0")
@@ -179,6 +180,7 @@ def ours_words(method: str) -> list[str]:
     for kv in (kv for kv in method[len("ours@"):].split(";") if kv):
         words += ([f"--{kv.replace('_', '-')}"] if kv in OURS_FLAGS else
                   ["--inlier-px", kv.split("=", 1)[1]] if kv.startswith("inlier_px=") else
+                  ["--refit-below-deg", kv.split("=", 1)[1]] if kv.startswith("refit_below_deg=") else
                   ["--second-look-config", kv[len("second_look."):]] if kv.startswith("second_look.") else
                   ["--config", kv])
     return words

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..collection.image_folder import COLMAP_MAX_IMAGE_SIZE, IMAGE_EXTENSIONS, OUR_DETECTORS
-from ..base import DEFAULT_INLIER_PX
+from ..base import DEFAULT_INLIER_PX, DEFAULT_REFIT_DEG
 from ..config import MODES
 from ..errors import ConfigError
 from ..validation import check_bool, check_choice, check_number, config_from
@@ -116,6 +116,8 @@ class SfmConfig:
     geometry: str = "ours"             # two-view geometry: "ours" (matcher's verdict written) | "colmap" (pycolmap verifies)
     inlier_px: float = DEFAULT_INLIER_PX  # geometry "ours": the mapper gets the inliers within this many px of their
                                        # pair's F / H (at least 15; the verdict decides at 3 px); 0 = all of them
+    refit_below_deg: float = DEFAULT_REFIT_DEG  # ...the F of pairs whose median triangulation angle is below this fitted
+                                       # again on its inliers first (small baselines); 0 = never
     max_inliers_per_pair: int = 1000   # inliers per pair handed to the mapper (spread over the image, best first); 0 = all
     cap_above: int = CAP_ABOVE_INLIERS  # ...but only when the database holds more inliers than this in all (0: always)
     second_look: bool | None = None    # weak pairs, and rejected ones that verified neighbours tie by chained matches, are
@@ -159,6 +161,8 @@ class SfmConfig:
         check_choice(o, "geometry", self.geometry, ("ours", "colmap"))
         check_number(o, "inlier_px", self.inlier_px, lo=0)
         object.__setattr__(self, "inlier_px", float(self.inlier_px))
+        check_number(o, "refit_below_deg", self.refit_below_deg, lo=0, hi=180)
+        object.__setattr__(self, "refit_below_deg", float(self.refit_below_deg))
         check_number(o, "max_inliers_per_pair", self.max_inliers_per_pair, lo=0, integer=True)
         if 0 < self.max_inliers_per_pair < MIN_MAPPER_INLIERS:
             raise ConfigError(f"{o}.max_inliers_per_pair must be 0 (all) or >= {MIN_MAPPER_INLIERS}: COLMAP's mapper "
@@ -202,7 +206,7 @@ class SfmConfig:
         """What determines the matched pairs (a rerun with other values is refused while pairs exist)."""
         return {"mode": self.mode, "matcher": dict(self.matcher or {}), "geometry": self.geometry,
                 "max_inliers_per_pair": self.max_inliers_per_pair, "cap_above": self.cap_above,
-                "inlier_px": self.inlier_px}
+                "inlier_px": self.inlier_px, "refit_below_deg": self.refit_below_deg}
 
     def mapping_settings(self) -> dict:
         """What determines the model given the database (a rerun with the same values and database reuses it)."""

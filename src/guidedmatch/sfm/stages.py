@@ -168,8 +168,9 @@ def check_output(conf: SfmConfig, paths: SfmPaths, project_path: Path, *, matchi
                               f"{project['extraction']}; rerun with the same options or use a new output path")
         if matching:
             # projects from before max_inliers_per_pair / inlier_px handed the mapper every inlier: they read as 0
-            # (and before cap_above: they capped whatever the total, i.e. 0)
-            old_matching = ({"max_inliers_per_pair": 0, "inlier_px": 0.0, "cap_above": 0, **old["matching"]}
+            # (and before cap_above: they capped whatever the total, i.e. 0; before refit_below_deg: no refit, 0)
+            old_matching = ({"max_inliers_per_pair": 0, "inlier_px": 0.0, "cap_above": 0, "refit_below_deg": 0.0,
+                             **old["matching"]}
                             if isinstance(old.get("matching"), dict) else None)
             if _num_matched_pairs(paths.database) and old_matching is not None and old_matching != project["matching"]:
                 raise OutputError(f"the pairs in {paths.database} were matched with {old.get('matching')}, not "
@@ -303,11 +304,13 @@ def second_look_on(wanted: bool | None, geometry: str) -> bool:
 
 def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, geometry: str = "ours",
                         max_inliers_per_pair: int = 0, expand: dict | None = None,
-                        second_look: dict | None = None, inlier_px: float = 0.0, cap_above: int = 0) -> dict:
+                        second_look: dict | None = None, inlier_px: float = 0.0, refit_below_deg: float = 0.0,
+                        cap_above: int = 0) -> dict:
     """The matching stage's work, shared by ``guidedmatch colmap`` and :func:`match_main`: the collection engine over
     ``pairs`` into the COLMAP ``database`` (pairs already there skipped); with ``geometry="colmap"`` pycolmap's
     verification of the pairs without a geometry; then (``geometry="ours"``, ``inlier_px`` > 0) only the inliers
-    within ``inlier_px`` of their pair's F / H (at least 15: :meth:`~guidedmatch.collection.ColmapSink.tighten_inliers`),
+    within ``inlier_px`` of their pair's F / H (at least 15: :meth:`~guidedmatch.collection.ColmapSink.tighten_inliers`;
+    the F of pairs whose median triangulation angle is below ``refit_below_deg`` fitted again first, 0: never),
     then at most ``max_inliers_per_pair`` inliers per pair for the mapper (0: all) when the database holds more
     than ``cap_above`` inliers in all (0: whatever the total). ``expand`` (ExpansionConfig
     fields): then the verified expansion -- the pairs closing a triangle of verified pairs, in rounds
@@ -343,7 +346,7 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
         # our verdict decides at 3 px; the mapper gets the inliers within inlier_px of the pair's model (at least
         # 15). Idempotent, like the cap: a resumed run leaves the rows already tightened as they are.
         if inlier_px and geometry == "ours":
-            tight = sink.tighten_inliers(inlier_px)   # at least COLMAP_MIN_INLIERS (15) per pair
+            tight = sink.tighten_inliers(inlier_px, refit_below_deg=refit_below_deg)   # >= 15 per pair
         # the mapper's bundle adjustments cost what its observations cost: hand it at most K inliers per pair
         # (spread, best first; weaker pairs whole). Idempotent, so a resumed run caps only the new pairs.
         if max_inliers_per_pair:
@@ -359,9 +362,11 @@ def describe_tightening(rec: dict) -> str:
     ...                      "inliers_before": 30000, "inliers_after": 21000, "time_s": 0.5})
     "21,000 of 30,000 inliers within 1.5 px of their pair's F / H (at least 15 per pair; 9 of 10 pairs tightened, 0.50 s)"
     """
+    refit = (f"; F fitted again for {rec['pairs_refit']} small-baseline pairs (< {rec['refit_below_deg']:g} deg)"
+             if rec.get("refit_below_deg") else "")
     return (f"{rec['inliers_after']:,} of {rec['inliers_before']:,} inliers within {rec['max_error_px']:g} px of "
             f"their pair's F / H (at least {rec['min_inliers']} per pair; {rec['pairs_tightened']} of {rec['pairs']} "
-            f"pairs tightened, {rec['time_s']:.2f} s)")
+            f"pairs tightened{refit}, {rec['time_s']:.2f} s)")
 
 
 def describe_cap(rec: dict) -> str:
@@ -442,7 +447,8 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
             done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
                                        max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand,
                                        second_look={} if second_look_on(conf.second_look, conf.geometry) else None,
-                                       inlier_px=conf.inlier_px, cap_above=conf.cap_above)
+                                       inlier_px=conf.inlier_px, refit_below_deg=conf.refit_below_deg,
+                                       cap_above=conf.cap_above)
         finally:
             source.close()
         pairs = database_pair_stats(paths.database)
