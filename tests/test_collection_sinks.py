@@ -839,6 +839,77 @@ def test_tighten_inliers_on_a_scene_with_known_noise(tmp_path):
     assert len(rows[(ids[2], ids[3])][2]) == 15 and rep["pairs_tightened"] == 2
 
 
+def _two_view_db(path, pairs):
+    """A COLMAP database with one PINHOLE camera (f 600, 640 x 480) and, per ``(x1, x2, F)`` of ``pairs``, two images
+    whose keypoints are ``x1`` / ``x2`` and one F row (configuration 3) with every correspondence an inlier."""
+    db = pycolmap.Database.open(str(path))
+    cid = db.write_camera(pycolmap.Camera.create_from_model_name(0, "PINHOLE", 600.0, 640, 480))
+    keys = []
+    for k, (x1, x2, F) in enumerate(pairs):
+        a, b = (db.write_image(pycolmap.Image(name=f"{k}_{j}.png", camera_id=cid)) for j in (0, 1))
+        db.write_keypoints(a, np.asarray(x1, np.float32))
+        db.write_keypoints(b, np.asarray(x2, np.float32))
+        rows = np.c_[np.arange(len(x1)), np.arange(len(x1))].astype(np.uint32)
+        g = pycolmap.TwoViewGeometry()
+        g.config, g.F, g.inlier_matches = 3, F, rows
+        db.write_matches(a, b, rows)
+        db.write_two_view_geometry(a, b, g)
+        keys.append((a, b) if a < b else (b, a))
+    db.close()
+    return keys
+
+
+def _early_fit_pair(baseline_deg: float, seed: int):
+    """Noisy correspondences (0.5 px) of a pair whose median triangulation angle is about ``baseline_deg``, and an
+    "early" F: the 8-point fit of 12 of them -- what the verdict's first model update leaves at a small baseline."""
+    from guidedmatch.testing.twoview import general_pair
+
+    depth = 6.0
+    baseline = 2 * depth * np.tan(np.radians(baseline_deg) / 2)
+    for k in range(50):
+        s = general_pair(rng=seed * 100 + k, n_points=300, size=(640, 480), f1=600.0, f2=600.0, max_angle_deg=3,
+                         baseline=baseline, depth=(5.0, 7.0), noise=0.5)
+        import cv2
+
+        Fe, _ = cv2.findFundamentalMat(s.x1n[:12], s.x2n[:12], cv2.FM_8POINT)
+        if Fe is not None and Fe.shape == (3, 3):
+            from guidedmatch.epipolar import sampson_distance
+
+            e = sampson_distance(Fe, s.x1n, s.x2n)
+            if np.mean(e > 1.5) > 0.2:          # an early fit that leaves many precise inliers beyond 1.5 px
+                return s, Fe
+    raise AssertionError("no early fit far enough off")
+
+
+def test_tighten_inliers_refits_small_baselines_only(tmp_path):
+    """At a small baseline (~1 deg) the early F is fitted again on the inliers: the row's F is replaced, every kept
+    inlier lies within 1.5 px of the new F (Sampson, recomputed here), more of the (0.5 px noise) correspondences
+    survive than around the early F, and a rerun changes nothing; at a wide baseline (~12 deg) with an equally bad F
+    the row is tightened around its own F, as with refit_below_deg=0."""
+    from guidedmatch.collection.sinks import tighten_two_view_inliers
+    from guidedmatch.epipolar import sampson_distance
+
+    small, F_small = _early_fit_pair(1.0, 1)
+    wide, F_wide = _early_fit_pair(12.0, 2)
+    keys = _two_view_db(tmp_path / "db.db", [(small.x1n, small.x2n, F_small), (wide.x1n, wide.x2n, F_wide)])
+    shutil.copyfile(tmp_path / "db.db", tmp_path / "plain.db")
+    rep = tighten_two_view_inliers(tmp_path / "db.db", 1.5)
+    assert rep["pairs_refit"] == 1 and rep["refit_below_deg"] == 3.0
+    rows, plain_rep = _geometry_rows(tmp_path / "db.db"), tighten_two_view_inliers(tmp_path / "plain.db", 1.5,
+                                                                                   refit_below_deg=0)
+    plain = _geometry_rows(tmp_path / "plain.db")
+    assert plain_rep["pairs_refit"] == 0
+    (c, F, inl, _), (_, F_old, inl_old, _) = rows[keys[0]], plain[keys[0]]
+    assert c == 3 and not np.allclose(F / np.linalg.norm(F), F_small / np.linalg.norm(F_small), atol=1e-6)
+    assert np.all(sampson_distance(F, small.x1n[inl[:, 0]], small.x2n[inl[:, 1]]) <= 1.5 + 1e-3)
+    assert len(inl) > len(inl_old) and len(inl) > 0.9 * len(small.x1n)
+    assert np.array_equal(rows[keys[1]][2], plain[keys[1]][2]) and np.array_equal(rows[keys[1]][1], F_wide)
+    again = tighten_two_view_inliers(tmp_path / "db.db", 1.5)
+    assert again["pairs_refit"] == 0 and again["pairs_tightened"] == 0
+    assert all(np.array_equal(rows[k][1], v[1]) and np.array_equal(rows[k][2], v[2])
+               for k, v in _geometry_rows(tmp_path / "db.db").items())
+
+
 def test_tighten_inliers_bad_input_and_lock(db_copy):
     from guidedmatch.collection.sinks import tighten_two_view_inliers
 
@@ -847,6 +918,9 @@ def test_tighten_inliers_bad_input_and_lock(db_copy):
             tighten_two_view_inliers(db_copy, bad)
     with pytest.raises(ConfigError):
         tighten_two_view_inliers(db_copy, 1.5, min_inliers=-1)
+    for bad in (-1, 181, float("nan")):
+        with pytest.raises(ConfigError):
+            tighten_two_view_inliers(db_copy, 1.5, refit_below_deg=bad)
     with ColmapSink(db_copy):
         with pytest.raises(DatabaseBusyError):
             tighten_two_view_inliers(db_copy, 1.5)

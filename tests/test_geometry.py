@@ -580,3 +580,38 @@ def test_the_verdicts_floor_is_colmaps_and_the_mappers():
     from guidedmatch.base import COLMAP_MIN_INLIERS
 
     assert VerdictConfig().min_inliers == COLMAP_MIN_INLIERS == 15
+
+
+@pytest.mark.parametrize("baseline, seed", [(0.01, 0), (0.05, 1), (0.2, 2), (1.0, 3), (3.0, 4)])
+def test_median_triangulation_angle_matches_the_angle_at_the_points(baseline, seed):
+    """The median triangulation angle from F and the intrinsics equals, on noiseless correspondences of a known pose,
+    the median over the points of the angle at each point between the two camera centres (computed one at a time)."""
+    from guidedmatch.geometry import median_triangulation_angle
+    from guidedmatch.testing.twoview import general_pair
+
+    s = general_pair(rng=seed, n_points=150, baseline=baseline)
+    slow = []
+    for X in s.X:
+        a, b = -X, s.t - X                       # towards camera 1's centre (origin) and camera 2's (t)
+        slow.append(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+    got = median_triangulation_angle(s.F, s.x1, s.x2, s.K1, s.K2)
+    assert abs(got - float(np.median(slow))) < 1e-3 * max(1.0, float(np.median(slow)))
+    assert np.isnan(median_triangulation_angle(s.F, s.x1[:4], s.x2[:4], s.K1, s.K2))
+
+
+def test_refit_fundamental_keeps_the_better_fit_only():
+    """A refit replaces a wrong F (its median Sampson distance is smaller) and leaves the true one (None)."""
+    from guidedmatch.epipolar import sampson_distance
+    from guidedmatch.geometry import refit_fundamental
+    from guidedmatch.testing.twoview import general_pair
+
+    from guidedmatch.testing.twoview import fundamental_from_pose, rotation_about
+
+    s = general_pair(rng=4, n_points=200, noise=0.5)
+    F_bad = fundamental_from_pose(s.K1, s.K2, rotation_about([0.3, 1.0, 0.1], np.radians(0.3)) @ s.R, s.t)
+    assert np.median(sampson_distance(F_bad, s.x1n, s.x2n)) > 1.0
+    F_new, err = refit_fundamental(F_bad, s.x1n, s.x2n)
+    assert F_new is not None and np.allclose(err, sampson_distance(F_new, s.x1n, s.x2n))
+    assert np.median(err) < 0.5
+    F_same, err_same = refit_fundamental(F_new, s.x1n, s.x2n, seed=1)
+    assert F_same is None or np.median(err_same) <= np.median(err)
