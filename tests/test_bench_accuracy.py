@@ -177,3 +177,22 @@ def test_intersection_and_free_union_of_inlier_sets():
     assert len(u) >= len(a) and (u[: len(a)] == a).all()
     extra = u[len(a):]
     assert not np.isin(extra[:, 0], a[:, 0]).any() and not np.isin(extra[:, 1], a[:, 1]).any()
+
+
+def test_verdict_inliers_read_from_the_line_guidedmatch_colmap_prints(tmp_path):
+    """The verified inliers before the mapper's selection come from the very line ``guidedmatch colmap`` prints
+    (describe_tightening); a run that printed none tightened nothing; ours+cap reads ours'; COLMAP's are its own."""
+    from guidedmatch.evaluation.bench_accuracy import verdict_inliers
+    from guidedmatch.sfm.stages import describe_tightening
+
+    rec = {"max_error_px": 1.5, "min_inliers": 15, "refit_below_deg": 3.0, "pairs": 28, "pairs_tightened": 27,
+           "pairs_refit": 2, "inliers_before": 64_321, "inliers_after": 60_665, "time_s": 0.4}
+    for m in ("ours", "ours@refit_below_deg=0"):
+        (tmp_path / m).mkdir()
+    (tmp_path / "ours" / "match.log").write_text(f"matched ...\nmapper     : {describe_tightening(rec)}\nnext ...\n")
+    (tmp_path / "ours@refit_below_deg=0" / "match.log").write_text("matched ...\n")
+    assert verdict_inliers("ours", tmp_path, 60_665) == 64_321
+    assert verdict_inliers("ours+cap", tmp_path, 23_000) == 64_321
+    assert verdict_inliers("ours@refit_below_deg=0", tmp_path, 5) == 5
+    assert verdict_inliers("colmap", tmp_path, 44_420) == 44_420
+    assert verdict_inliers("ours@inlier_px=0", tmp_path, 7) is None     # no log

@@ -692,6 +692,8 @@ def test_cli_refuses_a_second_writer_and_bad_inputs_with_one_line(rendered_db, t
     one_line_error(run_cli("colmap", db, "--max-inliers-per-pair", "-1"), "--max-inliers-per-pair")
     one_line_error(run_cli("colmap", db, "--inlier-px", "-1"), "--inlier-px")
     one_line_error(run_cli("colmap", db, "--inlier-px", "nan"), "--inlier-px")
+    one_line_error(run_cli("colmap", db, "--refit-below-deg", "-1"), "--refit-below-deg")
+    one_line_error(run_cli("colmap", db, "--refit-below-deg", "nan"), "--refit-below-deg")
     with ColmapSink(db):  # another writer holds the database
         one_line_error(run_cli("colmap", db, "--workers", "0"), "being written by another process")
     assert db_rows(db) == {}

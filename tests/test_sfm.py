@@ -98,7 +98,8 @@ def test_project_of_another_folder_refused(tmp_path):
                                 dict(num_threads=0), dict(peak_threshold=0.002, detector="ours:sift"),
                                 dict(matcher={"no_such_field": 1}), dict(pairs=""),
                                 dict(max_inliers_per_pair=-1), dict(max_inliers_per_pair=99), dict(inlier_px=-1),
-                                dict(inlier_px=float("nan")), dict(inlier_px="1.5")])
+                                dict(inlier_px=float("nan")), dict(inlier_px="1.5"), dict(refit_below_deg=-1),
+                                dict(refit_below_deg=181), dict(refit_below_deg=float("nan"))])
 def test_config_errors(kw):
     with pytest.raises(ConfigError):
         SfmConfig(**kw)

@@ -34,6 +34,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -250,6 +251,22 @@ def match(method: str, cache: Path, threads: int, redo: bool = False) -> dict:
     return dict(rec, cached=False)
 
 
+_TIGHTENED = re.compile(r"mapper\s*: ([\d,]+) of ([\d,]+) inliers within")
+
+
+def verdict_inliers(method: str, cache: Path, verified: int) -> int | None:
+    """The inliers a method's verification accepted, before any selection for the mapper: COLMAP's ``verified``;
+    for a ``guidedmatch colmap`` run the count its ``--inlier-px`` line reports (``match.log``; ``ours+cap`` /
+    ``ours+sfm``: that of ``ours``), ``verified`` when it printed none (nothing tightened), None when no log."""
+    if method == "colmap":
+        return verified
+    log = cache / ("ours" if cap_of(method) else method.replace("+", "_")) / "match.log"
+    if not method.startswith("ours") or not log.is_file():
+        return None
+    found = _TIGHTENED.search(log.read_text(errors="replace"))
+    return int(found.group(2).replace(",", "")) if found else verified
+
+
 def retime(cache: Path, repeats: int, threads: int) -> dict:
     """Matching time of ``colmap`` and ``ours`` again, ``repeats`` fresh processes each in alternating order on
     scratch copies of the features (cached in ``retime.json``, extended when more repeats are asked)."""
@@ -403,25 +420,27 @@ def markdown_table(rows: list[dict]) -> str:
     >>> r = dict(scene="s", method="colmap", images=8, registered=8.0, median_error_deg=0.2, auc={"1": .7, "2": .8,
     ...          "5": .9}, auc1_range=[.6, .7], verified_pairs=28, verified_inliers=1000, wrong_model=0.01,
     ...          wrong_epi=0.02, match_s=10.0, mapping_s=3.0, seeds=3, centre_rel=0.01)
-    >>> markdown_table([r, dict(r, method="ours", verified_inliers=1500, match_s=4.0)]).splitlines()[-1]
-    '| s | ours | 3 | 8/8 | 0.200° | 0.700 (0.600-0.700) / 0.800 / 0.900 | 28 | 1,500 (1.50x) | 1.00 % | 2.00 % | 4.0 (0.40x) | 3.0 | 1.00 % |'
+    >>> markdown_table([r, dict(r, method="ours", verified_inliers=1500, verdict_inliers=1700, match_s=4.0)]).splitlines()[-1]
+    '| s | ours | 3 | 8/8 | 0.200° | 0.700 (0.600-0.700) / 0.800 / 0.900 | 28 | 1,500 (1.50x) | 1,700 (1.70x) | 1.00 % | 2.00 % | 4.0 (0.40x) | 3.0 | 1.00 % |'
     """
     out = ["| scene | method | seeds | registered | median error | AUC@1° (min-max) / 2° / 5° | verified pairs | "
-           "verified inliers (/ COLMAP) | wrong inliers: COLMAP's model | wrong inliers: reference epipolar | "
-           "matching s (/ COLMAP) | mapping s | centre error / extent |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "mapper's inliers (/ COLMAP) | verified inliers (/ COLMAP) | wrong inliers: COLMAP's model | "
+           "wrong inliers: reference epipolar | matching s (/ COLMAP) | mapping s | centre error / extent |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ref = next((x for x in rows if x["scene"] == r["scene"] and x["method"] == "colmap"), None)
         if "error" in r:
-            out.append(f"| {r['scene']} | {r['method']} | | failed: {r['error']} |" + " |" * 9)
+            out.append(f"| {r['scene']} | {r['method']} | | failed: {r['error']} |" + " |" * 10)
             continue
         a = r["auc"]
         rng = r.get("auc1_range") or [float("nan")] * 2
         ri = f" ({r['verified_inliers'] / max(1, ref['verified_inliers']):.2f}x)" if ref else ""
+        vi = r.get("verdict_inliers")
+        rv = (f"{vi:,}" + (f" ({vi / max(1, ref['verified_inliers']):.2f}x)" if ref else "")) if vi is not None else "–"
         rt = f" ({r['match_s'] / ref['match_s']:.2f}x)" if ref and ref.get("match_s") else ""
         out.append(f"| {r['scene']} | {r['method']} | {r.get('seeds', '?')} | {r['registered']:g}/{r['images']} | "
                    f"{_f(r['median_error_deg'], '{:.3f}°')} | {a['1']:.3f} ({rng[0]:.3f}-{rng[1]:.3f}) / {a['2']:.3f} / "
-                   f"{a['5']:.3f} | {r['verified_pairs']:,} | {r['verified_inliers']:,}{ri} | "
+                   f"{a['5']:.3f} | {r['verified_pairs']:,} | {r['verified_inliers']:,}{ri} | {rv} | "
                    f"{_f(100 * r['wrong_model'] if r.get('wrong_model') is not None else None, '{:.2f} %')} | "
                    f"{_f(100 * r['wrong_epi'] if r.get('wrong_epi') is not None else None, '{:.2f} %')} | "
                    f"{r['match_s']:.1f}{rt} | {r['mapping_s']:.1f} | {_f(100 * r['centre_rel'], '{:.2f} %')} |")
@@ -491,7 +510,8 @@ def run_scene(root: Path, scene: str, cache: Path, methods, seeds, threads: int,
             mj = j.get("model_judge")
             row = {"scene": scene, "method": method, "images": len(ref), "match_s": rec["match_s"],
                    "match_load": rec.get("load"), "verified_pairs": rec["verified_pairs"],
-                   "verified_inliers": rec["verified_inliers"], "wrong_model": mj["wrong_rate"] if mj else None,
+                   "verified_inliers": rec["verified_inliers"],
+                   "verdict_inliers": verdict_inliers(method, cache, rec["verified_inliers"]), "wrong_model": mj["wrong_rate"] if mj else None,
                    "wrong_epi": j["epipolar"]["wrong_rate"], "judge": j, "match": rec, **aggregate(runs),
                    "drift": pooled_drift(runs, list(ref)), "runs": runs, "extraction": ext,
                    "reference": SCENES[scene][2]}
