@@ -582,7 +582,8 @@ def test_the_verdicts_floor_is_colmaps_and_the_mappers():
     assert VerdictConfig().min_inliers == COLMAP_MIN_INLIERS == 15
 
 
-@pytest.mark.parametrize("baseline, seed", [(0.01, 0), (0.05, 1), (0.2, 2), (1.0, 3), (3.0, 4)])
+@settings(max_examples=40, deadline=None)
+@given(baseline=st.floats(0.01, 3.0), seed=st.integers(0, 2**31 - 1))
 def test_median_triangulation_angle_matches_the_angle_at_the_points(baseline, seed):
     """The median triangulation angle from F and the intrinsics equals, on noiseless correspondences of a known pose,
     the median over the points of the angle at each point between the two camera centres (computed one at a time)."""
@@ -597,6 +598,8 @@ def test_median_triangulation_angle_matches_the_angle_at_the_points(baseline, se
     got = median_triangulation_angle(s.F, s.x1, s.x2, s.K1, s.K2)
     assert abs(got - float(np.median(slow))) < 1e-3 * max(1.0, float(np.median(slow)))
     assert np.isnan(median_triangulation_angle(s.F, s.x1[:4], s.x2[:4], s.K1, s.K2))
+    assert np.isnan(median_triangulation_angle(np.zeros((3, 3)), s.x1, s.x2, s.K1, s.K2))
+    assert np.isnan(median_triangulation_angle(np.full((3, 3), np.nan), s.x1, s.x2, s.K1, s.K2))
 
 
 def test_refit_fundamental_keeps_the_better_fit_only():

@@ -703,7 +703,7 @@ def median_triangulation_angle(F: np.ndarray, x1, x2, K1: np.ndarray, K2: np.nda
     angle at that point between the two camera centres (the triangulation angle). Of the four poses of E
     (``cv2.decomposeEssentialMat``) the one with the most correspondences in front of both cameras is taken, the
     depths solved per ray pair in closed form (``cv2.recoverPose`` counts no point beyond 50 baselines, so below
-    ~1 deg it cannot choose). NaN when fewer than 5 correspondences.
+    ~1 deg it cannot choose). NaN when fewer than 5 correspondences or ``E`` is zero or not finite.
 
     What it is for: telling a small-baseline pair (adjacent video frames: a few degrees) from a wide one before the
     mapper gets its inliers (:meth:`guidedmatch.collection.ColmapSink.tighten_inliers`, ``refit_below_deg``). With
@@ -722,7 +722,10 @@ def median_triangulation_angle(F: np.ndarray, x1, x2, K1: np.ndarray, K2: np.nda
     d2 = np.c_[x2, np.ones(len(x2))] @ np.linalg.inv(K2).T
     d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
     d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
-    Ra, Rb, t = cv2.decomposeEssentialMat(K2.T @ np.asarray(F, dtype=np.float64) @ K1)
+    E = K2.T @ np.asarray(F, dtype=np.float64) @ K1
+    if not (np.isfinite(E).all() and np.any(E)):
+        return float("nan")
+    Ra, Rb, t = cv2.decomposeEssentialMat(E)
     best = (-1, None)
     for R in (Ra, Rb):
         r2 = d2 @ R                                                 # camera-2 rays in camera 1's frame: R^T d2
