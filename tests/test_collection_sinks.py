@@ -862,6 +862,9 @@ def _two_view_db(path, pairs):
 def _early_fit_pair(baseline_deg: float, seed: int):
     """Noisy correspondences (0.5 px) of a pair whose median triangulation angle is about ``baseline_deg``, and an
     "early" F: the 8-point fit of 12 of them -- what the verdict's first model update leaves at a small baseline."""
+    import cv2
+
+    from guidedmatch.epipolar import sampson_distance
     from guidedmatch.testing.twoview import general_pair
 
     depth = 6.0
@@ -869,12 +872,8 @@ def _early_fit_pair(baseline_deg: float, seed: int):
     for k in range(50):
         s = general_pair(rng=seed * 100 + k, n_points=300, size=(640, 480), f1=600.0, f2=600.0, max_angle_deg=3,
                          baseline=baseline, depth=(5.0, 7.0), noise=0.5)
-        import cv2
-
         Fe, _ = cv2.findFundamentalMat(s.x1n[:12], s.x2n[:12], cv2.FM_8POINT)
         if Fe is not None and Fe.shape == (3, 3):
-            from guidedmatch.epipolar import sampson_distance
-
             e = sampson_distance(Fe, s.x1n, s.x2n)
             if np.mean(e > 1.5) > 0.2:          # an early fit that leaves many precise inliers beyond 1.5 px
                 return s, Fe

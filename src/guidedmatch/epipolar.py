@@ -41,6 +41,8 @@ __all__ = [
     "check_points",
     "map_points",
     "skew",
+    "median_triangulation_angle",
+    "refit_fundamental",
 ]
 
 #: Minimum number of correspondences accepted by :func:`estimate_fundamental` (8-point solver size).
@@ -364,3 +366,67 @@ def transform_fundamental(F: np.ndarray, H1: np.ndarray | None = None, H2: np.nd
         A = np.linalg.inv(np.asarray(H2, dtype=np.float64)).T @ A
     n = np.linalg.norm(A)
     return A / n if n > 0 else A
+
+
+def median_triangulation_angle(F: np.ndarray, x1, x2, K1: np.ndarray, K2: np.ndarray) -> float:
+    """Median angle (degrees) between the two viewing rays of the correspondences ``x1 <-> x2`` (pixels of the
+    cameras ``K1``, ``K2``) under the relative pose of ``E = K2^T F K1``: for a ray pair that meets in a point, the
+    angle at that point between the two camera centres (the triangulation angle). Of the four poses of E
+    (``cv2.decomposeEssentialMat``) the one with the most correspondences in front of both cameras is taken, the
+    depths solved per ray pair in closed form (``cv2.recoverPose`` counts no point beyond 50 baselines, so below
+    ~1 deg it cannot choose). NaN when fewer than 5 correspondences or ``E`` is zero or not finite.
+
+    What it is for: telling a small-baseline pair (adjacent video frames: a few degrees) from a wide one before the
+    mapper gets its inliers (:meth:`guidedmatch.collection.ColmapSink.tighten_inliers`, ``refit_below_deg``). With
+    the database's camera guesses (focal 1.2 x the larger side when nothing is known) it is an estimate.
+
+    >>> from guidedmatch.testing.twoview import general_pair
+    >>> s = general_pair(rng=0, n_points=200, baseline=0.1)     # 0.1 units sideways, 4-8 units away: ~1 deg
+    >>> round(median_triangulation_angle(s.F, s.x1, s.x2, s.K1, s.K2), 2)
+    0.74
+    """
+    x1, x2 = (np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in (x1, x2))
+    if len(x1) < 5 or len(x1) != len(x2):
+        return float("nan")
+    K1, K2 = np.asarray(K1, dtype=np.float64), np.asarray(K2, dtype=np.float64)
+    d1 = np.c_[x1, np.ones(len(x1))] @ np.linalg.inv(K1).T          # rays of camera 1 (its frame)
+    d2 = np.c_[x2, np.ones(len(x2))] @ np.linalg.inv(K2).T
+    d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+    d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
+    E = K2.T @ np.asarray(F, dtype=np.float64) @ K1
+    if not (np.isfinite(E).all() and np.any(E)):
+        return float("nan")
+    Ra, Rb, t = cv2.decomposeEssentialMat(E)
+    best = (-1, None)
+    for R in (Ra, Rb):
+        r2 = d2 @ R                                                 # camera-2 rays in camera 1's frame: R^T d2
+        b = np.sum(d1 * r2, 1)
+        det = b * b - 1.0                                           # of lambda1 d1 - lambda2 r2 = c (least squares)
+        for c in (-(R.T @ t).ravel(), (R.T @ t).ravel()):           # camera 2's centre for +t and -t
+            p, q = d1 @ c, r2 @ c
+            with np.errstate(divide="ignore", invalid="ignore"):
+                l1, l2 = (b * q - p) / det, (q - b * p) / det
+            front = int(np.count_nonzero((l1 > 0) & (l2 > 0)))
+            if front > best[0]:
+                best = (front, b)
+    return float(np.degrees(np.median(np.arccos(np.clip(best[1], -1.0, 1.0)))))
+
+
+def refit_fundamental(F: np.ndarray, x1, x2, *, threshold: float = 1.0, seed: int = 0):
+    """``F`` fitted again on the (verified) inliers ``x1 <-> x2`` (USAC MAGSAC++, ``threshold`` px, 10,000 iterations,
+    ``seed``): ``(F_new, sampson_errors)`` when its median Sampson distance over *all* of them is at most ``F``'s,
+    else ``(None, errors_to_F)`` -- a refit is kept only where it fits these inliers better.
+
+    >>> from guidedmatch.testing.twoview import general_pair
+    >>> s = general_pair(rng=0, n_points=200, noise=0.3)
+    >>> F_new, err = refit_fundamental(s.F + 1e-7 * np.eye(3), s.x1n, s.x2n)   # a slightly wrong F
+    >>> F_new is not None and bool(np.median(err) < 0.3)
+    True
+    """
+    x1, x2 = (np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in (x1, x2))
+    err = sampson_distance(np.asarray(F, dtype=np.float64), x1, x2)
+    fit = estimate_fundamental(x1, x2, threshold=threshold, confidence=0.9999, max_iters=10000, seed=seed)
+    if not fit:
+        return None, err
+    e = sampson_distance(fit.F, x1, x2)
+    return (fit.F, e) if np.median(e) <= np.median(err) else (None, err)

@@ -450,8 +450,8 @@ class ColmapSink(MatchSink):
 
         **Small baselines** (``refit_below_deg`` > 0): the F of a row (configuration other than 4-6, more than 15
         inliers, some beyond ``max_error_px``) whose inliers' median triangulation angle is below ``refit_below_deg``
-        degrees (:func:`~guidedmatch.geometry.median_triangulation_angle`, with the database's camera guesses) is first
-        fitted again on those inliers (:func:`~guidedmatch.geometry.refit_fundamental`; kept, and written to the
+        degrees (:func:`~guidedmatch.epipolar.median_triangulation_angle`, with the database's camera guesses) is first
+        fitted again on those inliers (:func:`~guidedmatch.epipolar.refit_fundamental`; kept, and written to the
         row, only when its median Sampson distance is smaller) and the inliers are selected around the new F. The
         verdict's F is an early fit (one model update), least determined where the baseline is small: on fox
         (video frames, 215 of 2,001 rows refit) the median pose error went from 0.487 to 0.478 deg against COLMAP's
@@ -461,7 +461,8 @@ class ColmapSink(MatchSink):
         Returns ``{"max_error_px", "min_inliers", "refit_below_deg", "pairs", "pairs_tightened", "pairs_refit",
         "inliers_before", "inliers_after", "time_s"}`` (``pairs_refit``: rows whose F was replaced).
         """
-        from ..geometry import closest_inliers, median_triangulation_angle, refit_fundamental
+        from ..epipolar import median_triangulation_angle, refit_fundamental
+        from ..geometry import closest_inliers
         from ..validation import check_number
 
         check_number("tighten_inliers", "max_error_px", max_error_px, lo=0, lo_open=True)
