@@ -336,3 +336,25 @@ def test_cli_second_look_settings_reach_it_and_are_checked_before_any_work(match
                      "weak_below=0", "--no-progress", "--log", "none"]) == 0
     out = capsys.readouterr().out
     assert "second look:" in out and "0 newly verified" in out, out
+
+
+def test_a_database_made_again_under_the_same_name_gets_the_rounds_rows_again(matched_db, tmp_path):
+    """The state file outlives the database: a new database with the same first pass (the same graph, so the same
+    key) must not skip the finished rounds, whose rows it does not hold (Herz-Jesus-P8 kept a rejected pair that
+    the second look had verified)."""
+    pre = tmp_path / "pre.db"
+    shutil.copyfile(matched_db, pre)
+    _reject(pre, _strongest(pre, 2))
+    db = tmp_path / "db.db"
+    shutil.copyfile(pre, db)
+    first = _look(db)
+    done = _rows(db)
+    assert done != _rows(pre) and first["verified"] >= 2
+    shutil.copyfile(pre, db)   # the database made again; db.db.second_look.json stays
+    again = _look(db)
+    assert _rows(db) == done
+    assert any(r.get("stale") for r in again["rounds"]) and not any(r.get("replayed") for r in again["rounds"])
+    assert "not in this database" in describe(again)
+    # and a rerun on the database that holds the rounds still matches nothing
+    third = _look(db)
+    assert all(r.get("replayed") for r in third["rounds"]) and _rows(db) == done

@@ -43,8 +43,10 @@ Resumable like the verified expansion: each round's pair list is saved (atomical
 ``<database>.second_look.json`` before it is matched, with a key of the settings and of the graph it started from
 (the tried pairs, and the verified pairs outside the saved rounds); the priors of a round come from the verified
 pairs outside it, which the round does not change; a rerun replays an unfinished round (matching its pairs again
-with the same priors gives the same rows), skips finished ones and stops where the finished run stopped, so a run
-killed at any moment, then rerun, ends with the same database as an uninterrupted run.
+with the same priors gives the same rows), skips a finished one only where the database holds the match rows it
+wrote (a fingerprint in the state: a database removed and made again under the same name has the same graph after
+its first pass, but not the rounds' rows, which are matched again and reported) and stops where the finished run
+stopped, so a run killed at any moment, then rerun, ends with the same database as an uninterrupted run.
 """
 from __future__ import annotations
 
@@ -379,7 +381,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         k += 1
         pairs = [tuple(p) for p in r["pairs"]]
         orphan = r.get("kind") == "orphans"
-        if r.get("done"):
+        stale = bool(r.get("done")) and r.get("rows") != _round_rows(sink, pairs)
+        if r.get("done") and not stale:
             record.append(dict(round=k, kind=r.get("kind", "chains"), pairs=len(pairs), verified=r.get("verified", 0),
                                inliers_gained=r.get("inliers_gained", 0), time_s=0.0, replayed=True))
             continue
@@ -395,10 +398,10 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         mine = [frozenset(p) for p in pairs]
         new = sum(p in after and b == 0 for p, b in zip(mine, r["before"]))
         gained = sum(after.get(p, 0) - b for p, b in zip(mine, r["before"]))
-        r.update(done=True, verified=new, inliers_gained=gained, failed=len(rep.failed))
+        r.update(done=True, verified=new, inliers_gained=gained, failed=len(rep.failed), rows=_round_rows(sink, pairs))
         record.append(dict(round=k, kind=r.get("kind", "chains"), candidates=r.get("candidates"), pairs=len(pairs),
                            verified=new, inliers_gained=gained, failed=len(rep.failed),
-                           chain_s=r.get("chain_s", 0.0), time_s=time.perf_counter() - t1))
+                           chain_s=r.get("chain_s", 0.0), time_s=time.perf_counter() - t1, stale=stale))
         if new == 0 and not orphan:
             stopped = "a round verified no new pair"
         _save(state, key, rounds, stopped)
@@ -428,10 +431,27 @@ def describe(record: dict) -> str:
     text = (f"{record['looked']} weak, rejected or orphan pairs matched again: {record['verified']} newly verified, "
             f"{record['inliers_gained']:+,} inliers ({record['time_s']:.2f} s, {len(record['rounds'])} round(s); "
             f"stopped: {record['stopped']})")
+    stale = sum(isinstance(r, dict) and bool(r.get("stale")) for r in record["rounds"])
+    if stale:
+        text += f"; {stale} saved round(s) not in this database (made again?): matched again"
     if o.get("before"):
         text += (f"; images without a verified pair: {o['before']} -> {o['after']} ({o['pairs']} pairs at "
                  f"{o['max_unguided']:g})")
     return text
+
+
+def _round_rows(sink, pairs) -> str:
+    """A fingerprint of the match rows of a round's ``pairs`` in the sink's database (absent rows included): a
+    finished round is skipped only when the database holds what it wrote. A state file outlives a database removed
+    and made again under the same name, whose first pass gives the same graph -- hence the same key -- without the
+    rounds' rows (seen on Herz-Jesus-P8: the rerun kept a rejected pair the second look had verified). The raw
+    matches, not the geometries: the mapper's inlier selection and the cap rewrite those afterwards."""
+    db, h = sink._db, hashlib.sha256()
+    for a, b in pairs:
+        i1, i2 = sorted((sink._id(a), sink._id(b)))
+        m = np.asarray(db.read_matches(i1, i2), np.uint32) if db.exists_matches(i1, i2) else None
+        h.update(b"-" if m is None else m.tobytes() + b"|")
+    return h.hexdigest()[:32]
 
 
 def _load(path: Path | None) -> dict:
