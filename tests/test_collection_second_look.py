@@ -358,3 +358,39 @@ def test_a_database_made_again_under_the_same_name_gets_the_rounds_rows_again(ma
     # and a rerun on the database that holds the rounds still matches nothing
     third = _look(db)
     assert all(r.get("replayed") for r in third["rounds"]) and _rows(db) == done
+
+
+def test_one_cluster_serves_the_first_pass_and_the_second_look(sequence_db, tmp_path, monkeypatch):
+    """match_into_database with workers=2: one local cluster is started for the run, the first pass and every second
+    look round run on it (the rounds report no start-up of their own), and the database equals an in-process run's."""
+    from guidedmatch.collection import dask_backend, engine
+    from guidedmatch.collection.pairs import exhaustive_pairs
+    from guidedmatch.collection.sources import ColmapSource
+    from guidedmatch.sfm.stages import match_into_database
+
+    starts = []
+
+    def counting(n, start=dask_backend._start_local_cluster):
+        starts.append(n)
+        return start(n)
+
+    monkeypatch.setattr(dask_backend, "_start_local_cluster", counting)
+    monkeypatch.setattr(engine, "_start_local_cluster", counting)
+    out = {}
+    for workers in (2, 0):
+        db = tmp_path / f"w{workers}.db"
+        shutil.copyfile(sequence_db, db)
+        src = ColmapSource(db)
+        try:
+            out[workers] = match_into_database(src, exhaustive_pairs(src.names()), db,
+                                               dict(progress=False, workers=workers), second_look={})
+        finally:
+            src.close()
+    rep, look = out[2]["report"], out[2]["second_look"]
+    assert starts == [2]
+    assert rep.totals["backend"] == "local-cluster" and "one cluster for every stage" in rep.totals["backend_reason"]
+    assert rep.totals["startup_s"] > 0 and look["rounds"]
+    assert all(r["backend"] == "local-cluster" and r["startup_s"] == 0 for r in look["rounds"])
+    assert out[0]["report"].totals["backend"] == "in-process"
+    assert [r["pairs"] for r in out[0]["second_look"]["rounds"]] == [r["pairs"] for r in look["rounds"]]
+    assert _rows(tmp_path / "w2.db") == _rows(tmp_path / "w0.db")

@@ -63,7 +63,7 @@ class CollectionConfig:
     chunk_pairs: int = 16                      # pairs per task; a task's pairs share one anchor image
     tasks_per_worker: int = 2                  # tasks in flight per worker (one running, one queued): bounds memory
     cache_mb: float = 1024.0                   # per worker process: LRU bound on cached images, MB (engine doc)
-    inprocess_max_work: int = 20_000_000       # auto: in-process when sum over pairs of (n1 + n2) is at most this
+    inprocess_max_work: int = 10_000_000       # auto: in-process when sum over pairs of (n1 + n2) is at most this
     report_max_pairs: int = 100_000            # per-pair dicts kept in the report (the log gets all of them)
 
     def __post_init__(self) -> None:

@@ -17,14 +17,16 @@ Where the pairs run (``CollectionConfig.workers`` / ``scheduler`` / the ``client
   pair's Numba kernels and faiss run single-threaded, the pairs share the loaded images (one copy, one cache).
 * ``workers=None`` (default, "auto"): in this process when the job is not huge, else a local cluster with one worker
   per usable core. **Rule**: in-process when the work ``W = sum over the pairs to do of (n1 + n2)`` (features of
-  both images) is at most ``inprocess_max_work`` (default 20,000,000 -- about 1,200 pairs of 8192 features), or
-  when fewer than 2 cores are usable. Measured on the 2-core development machine (Herz-Jesus-P8, 28 pairs, one
-  run each, `guidedmatch colmap DB --pairs exhaustive`): at 68k features per image (W = 3.8 M) 2 threads in-process
-  took 11.1 s, a local cluster of 2 worker processes 17.7 s (its start / stop ~2 s, and the two processes' pairs
-  ran slower side by side than two threads sharing one copy of the images: 25.3 s vs 19.4 s of matching summed
-  over pairs); at 11.4k (W = 0.64 M) 2 threads 2.5 s vs 3.0 s for one thread. Above the threshold the run is
-  long enough to pay the cluster's start-up for its isolation (a pair that crashes its process costs a worker,
-  not the run).
+  both images) is at most ``inprocess_max_work`` (default 10,000,000 -- about 600 pairs of 8192 features), or
+  when fewer than 2 cores are usable. Measured on the 2-core development machine, one run each, ``guidedmatch
+  colmap DB`` at the defaults: Herz-Jesus-P8 at 11.4k features per image (W = 0.64 M) 2.4 s in threads vs 5.4 s on
+  a 2-worker cluster (start-up ~1.2 s); Herz-Jesus-P25 (W = 7.3 M) 12.1 vs 12.2 s of first pass, equal; buddha's
+  36-image subset (630 pairs, W = 5.6 M) 11.6 / 10.9 s in threads vs 10.0 / 10.2 s on workers; buddha (66 images,
+  W ~ 19 M) 32.2 s in threads, one core a third idle (the unguided start of unrelated pairs is Python / NumPy work
+  that holds the GIL), vs 24.6 s on 2 workers. Above the threshold the run pays the cluster's start-up for its
+  parallelism and isolation (a pair that crashes its process costs a worker, not the run). Inside
+  :func:`guidedmatch.sfm.stages.match_into_database` one cluster serves every stage of the run (first pass,
+  expansion, second look: :func:`shared_cluster`).
 
 Scheduling (locality)
 ---------------------
@@ -135,6 +137,43 @@ def _done_pairs(sink, candidates) -> set:
     return set(sink.done_pairs(candidates) if takes else sink.done_pairs())
 
 
+def _todo(source, pairs: list, sink) -> tuple[list, dict, int]:
+    """``(pairs not done yet, {image: features} of their images, work W = sum over them of n1 + n2)``."""
+    done_before = _done_pairs(sink, pairs)
+    todo = [p for p in pairs if frozenset(p) not in done_before]
+    nfeat: dict = {}
+    for a, b in todo:
+        for n in (a, b):
+            if n not in nfeat:
+                nfeat[n] = int(source.num_features(n))
+    return todo, nfeat, sum(nfeat[a] + nfeat[b] for a, b in todo)
+
+
+@contextlib.contextmanager
+def shared_cluster(source, pairs, sink, config: CollectionConfig | dict | None = None):
+    """The :class:`~guidedmatch.collection.dask_backend.SharedCluster` for every stage of a run whose first pass
+    (``pairs`` not yet in ``sink``) the backend rule sends to a local cluster (auto above ``inprocess_max_work``, or
+    ``workers=N``), else ``None`` (in-process, a scheduler's address, nothing to do): pass it as ``client=`` to each
+    stage; closed on exit."""
+    from .dask_backend import SharedCluster
+    from .pairs import normalize_pairs
+
+    cfg = config_from(CollectionConfig, config)
+    todo, _, work = _todo(source, list(normalize_pairs(getattr(pairs, "pairs", pairs), list(source.names())).pairs),
+                          sink)
+    backend, n, reason = _choose_backend(cfg, None, work) if todo else ("none", 0, "")
+    if backend != "local-cluster":
+        yield None
+        return
+    try:
+        pickle.dumps(source)
+    except Exception as exc:  # noqa: BLE001 - checked before any cluster starts
+        raise InputError(f"the feature source cannot be sent to worker processes (not picklable: {exc}); "
+                         f"use workers=0") from None
+    with SharedCluster(n, reason) as handle:
+        yield handle
+
+
 def match_collection(source, pairs, sink, config: CollectionConfig | dict | None = None, *,
                      client=None, first: dict | None = None) -> CollectionReport:
     """Match every pair of ``pairs`` with features from ``source`` and write them into ``sink``.
@@ -147,7 +186,9 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
         sink: an open :class:`~guidedmatch.collection.sinks.MatchSink` (``done_pairs()``, ``write(...)``); only
             this process writes to it.
         config: :class:`CollectionConfig` or a dict of its fields.
-        client: a :class:`distributed.Client` of a running cluster to use (not closed by this call).
+        client: a :class:`distributed.Client` of a running cluster to use, or the
+            :class:`~guidedmatch.collection.dask_backend.SharedCluster` of the run (:func:`shared_cluster`); not
+            closed by this call.
         first: ``{(name1, name2): prior}``, the matcher's prior draw order of some pairs (``first`` of
             :func:`guidedmatch.matcher.match`: image-1 feature indices drawn first, as the pair is oriented in
             ``pairs``), e.g. the chained keypoints of :mod:`~guidedmatch.collection.second_look`; sent with the task
@@ -186,15 +227,8 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     pairs = checked
     todo_all = list(pairs.pairs)
     dropped = {k: v.get("count", 0) for k, v in pairs.report.items() if isinstance(v, dict) and "count" in v}
-    done_before = _done_pairs(sink, todo_all)
-    todo = [p for p in todo_all if frozenset(p) not in done_before]
+    todo, nfeat, work = _todo(source, todo_all, sink)
     skipped = len(todo_all) - len(todo)
-    nfeat = {}
-    for a, b in todo:
-        for n in (a, b):
-            if n not in nfeat:
-                nfeat[n] = int(source.num_features(n))
-    work = sum(nfeat[a] + nfeat[b] for a, b in todo)
     backend, n_workers, reason = _choose_backend(cfg, client, work) if todo else ("none", 0, "nothing to do")
     spec = _TaskSpec(uuid.uuid4().hex[:12], cfg.mode, cfg.matcher, int(cfg.cache_mb * 2**20),
                      single_thread=backend == "local-cluster")
@@ -215,7 +249,9 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     try:
         if backend in ("local-cluster", "scheduler", "client"):  # before the progress bar and the log
             t0 = time.perf_counter()
-            if backend == "local-cluster":
+            if backend == "local-cluster" and client is not None:   # a SharedCluster: started once, closed by its owner
+                use = client.client
+            elif backend == "local-cluster":
                 cluster, own_client = _start_local_cluster(n_workers)
                 use = own_client
             elif backend == "scheduler":
@@ -227,7 +263,8 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                     raise GuidedMatchError(f"cannot connect to the dask scheduler at {cfg.scheduler}: {exc}") from None
             else:
                 use = client
-            startup_s = time.perf_counter() - t0
+            startup_s = client.take_startup() if backend == "local-cluster" and client is not None else \
+                time.perf_counter() - t0
         log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
         if cfg.progress:
             from tqdm.auto import tqdm

@@ -401,7 +401,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         r.update(done=True, verified=new, inliers_gained=gained, failed=len(rep.failed), rows=_round_rows(sink, pairs))
         record.append(dict(round=k, kind=r.get("kind", "chains"), candidates=r.get("candidates"), pairs=len(pairs),
                            verified=new, inliers_gained=gained, failed=len(rep.failed),
-                           chain_s=r.get("chain_s", 0.0), time_s=time.perf_counter() - t1, stale=stale))
+                           chain_s=r.get("chain_s", 0.0), time_s=time.perf_counter() - t1, stale=stale,
+                           backend=rep.totals.get("backend"), startup_s=rep.totals.get("startup_s", 0.0)))
         if new == 0 and not orphan:
             stopped = "a round verified no new pair"
         _save(state, key, rounds, stopped)

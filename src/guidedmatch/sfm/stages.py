@@ -321,23 +321,26 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
     Returns ``{"report": CollectionReport, "match_time_s", "verified" (pairs verified by COLMAP
     now, or None), "verify_time_s", "second_look" (its record or None), "inlier_px" (the tightening's record or
     None), "inlier_cap" (the cap's record or None)}``."""
-    from ..collection.engine import match_collection
+    from ..collection.engine import match_collection, shared_cluster
     from ..collection.sinks import ColmapSink
 
     t0 = time.perf_counter()
     verified, t_verify, cap, tight = None, 0.0, None, None
     with ColmapSink(database, geometry=geometry) as sink:
-        if expand is not None:
-            from ..collection.expansion import match_collection_expanded
+        # one local cluster (when the first pass needs one) for the first pass, the expansion and the second look
+        with shared_cluster(source, pairs, sink, cconf) as client:
+            if expand is not None:
+                from ..collection.expansion import match_collection_expanded
 
-            report = match_collection_expanded(source, pairs, sink, cconf, expand)
-        else:
-            report = match_collection(source, pairs, sink, cconf)
-        look = None
-        if second_look is not None and geometry == "ours":
-            from ..collection.second_look import second_look as run_second_look
+                report = match_collection_expanded(source, pairs, sink, cconf, expand, client=client)
+            else:
+                report = match_collection(source, pairs, sink, cconf, client=client)
+            look = None
+            if second_look is not None and geometry == "ours":
+                from ..collection.second_look import second_look as run_second_look
 
-            look = run_second_look(source, sink, cconf, second_look, looked=getattr(report, "prior_pairs", ()))
+                look = run_second_look(source, sink, cconf, second_look, looked=getattr(report, "prior_pairs", ()),
+                                       client=client)
         t_match = time.perf_counter() - t0
         if geometry == "colmap":
             t1 = time.perf_counter()
