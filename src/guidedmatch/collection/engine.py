@@ -21,7 +21,7 @@ Where the pairs run (``CollectionConfig.workers`` / ``scheduler`` / the ``client
   when fewer than 2 cores are usable. Measured on the 2-core development machine, one run each, ``guidedmatch
   colmap DB`` at the defaults: Herz-Jesus-P8 at 11.4k features per image (W = 0.64 M) 2.4 s in threads vs 5.4 s on
   a 2-worker cluster (start-up ~1.2 s); Herz-Jesus-P25 (W = 7.3 M) 12.1 vs 12.2 s of first pass, equal; buddha's
-  36-image subset (630 pairs, W = 5.6 M) 11.6 / 10.9 s in threads vs 10.0 / 10.2 s on workers; buddha (66 images,
+  36-image subset (630 pairs, W = 5.6 M) 11.6 / 10.9 s in threads vs 10.0 / 10.2 s on workers; buddha (67 images,
   W ~ 19 M) 32.2 s in threads, one core a third idle (the unguided start of unrelated pairs is Python / NumPy work
   that holds the GIL), vs 24.6 s on 2 workers. Above the threshold the run pays the cluster's start-up for its
   parallelism and isolation (a pair that crashes its process costs a worker, not the run). Inside
