@@ -112,7 +112,7 @@ from ..errors import GuidedMatchError, InputError
 from ..validation import config_from
 from .cache import _has_prepared, _TaskSpec
 from .config import COLLECTION_MATCHER_DEFAULTS, CollectionConfig, collection_matcher_config
-from .dask_backend import _run_dask, _start_local_cluster
+from .dask_backend import SharedCluster, _run_dask, _start_local_cluster
 from .inprocess import _run_inprocess
 from .planning import (CACHE_BYTES_PER_FEATURE, INPROCESS_RULE, _choose_backend, _chunk_size, _Queue, _usable_cores,
                        plan_tasks)
@@ -149,13 +149,21 @@ def _todo(source, pairs: list, sink) -> tuple[list, dict, int]:
     return todo, nfeat, sum(nfeat[a] + nfeat[b] for a, b in todo)
 
 
+def _check_picklable(source) -> None:
+    """Refuse, before any cluster starts, a feature source that cannot be sent to worker processes."""
+    try:
+        pickle.dumps(source)
+    except Exception as exc:  # noqa: BLE001 - checked before any cluster starts
+        raise InputError(f"the feature source cannot be sent to worker processes (not picklable: {exc}); "
+                         f"use workers=0") from None
+
+
 @contextlib.contextmanager
 def shared_cluster(source, pairs, sink, config: CollectionConfig | dict | None = None):
     """The :class:`~guidedmatch.collection.dask_backend.SharedCluster` for every stage of a run whose first pass
     (``pairs`` not yet in ``sink``) the backend rule sends to a local cluster (auto above ``inprocess_max_work``, or
     ``workers=N``), else ``None`` (in-process, a scheduler's address, nothing to do): pass it as ``client=`` to each
     stage; closed on exit."""
-    from .dask_backend import SharedCluster
     from .pairs import normalize_pairs
 
     cfg = config_from(CollectionConfig, config)
@@ -165,11 +173,7 @@ def shared_cluster(source, pairs, sink, config: CollectionConfig | dict | None =
     if backend != "local-cluster":
         yield None
         return
-    try:
-        pickle.dumps(source)
-    except Exception as exc:  # noqa: BLE001 - checked before any cluster starts
-        raise InputError(f"the feature source cannot be sent to worker processes (not picklable: {exc}); "
-                         f"use workers=0") from None
+    _check_picklable(source)
     with SharedCluster(n, reason) as handle:
         yield handle
 
@@ -229,15 +233,17 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     dropped = {k: v.get("count", 0) for k, v in pairs.report.items() if isinstance(v, dict) and "count" in v}
     todo, nfeat, work = _todo(source, todo_all, sink)
     skipped = len(todo_all) - len(todo)
-    backend, n_workers, reason = _choose_backend(cfg, client, work) if todo else ("none", 0, "nothing to do")
+    shared = isinstance(client, SharedCluster)  # the run's cluster: started once, closed by its owner
+    if not todo:
+        backend, n_workers, reason = "none", 0, "nothing to do"
+    elif shared:
+        backend, n_workers, reason = "local-cluster", client.n_workers, client.reason
+    else:
+        backend, n_workers, reason = _choose_backend(cfg, client, work)
     spec = _TaskSpec(uuid.uuid4().hex[:12], cfg.mode, cfg.matcher, int(cfg.cache_mb * 2**20),
                      single_thread=backend == "local-cluster")
     if backend in ("local-cluster", "scheduler", "client"):
-        try:
-            pickle.dumps(source)
-        except Exception as exc:  # noqa: BLE001 - checked before any cluster starts
-            raise InputError(f"the feature source cannot be sent to worker processes (not picklable: {exc}); "
-                             f"use workers=0") from None
+        _check_picklable(source)
     chunk = _chunk_size(cfg.chunk_pairs, len(todo), n_workers if backend == "local-cluster" else None)
     plan = plan_tasks(todo, names, chunk, anchor="first" if backend == "in-process" else "second",
                       sizes={n: k * CACHE_BYTES_PER_FEATURE for n, k in nfeat.items()}, cache_bytes=spec.cache_bytes)
@@ -249,7 +255,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
     try:
         if backend in ("local-cluster", "scheduler", "client"):  # before the progress bar and the log
             t0 = time.perf_counter()
-            if backend == "local-cluster" and client is not None:   # a SharedCluster: started once, closed by its owner
+            if shared:
                 use = client.client
             elif backend == "local-cluster":
                 cluster, own_client = _start_local_cluster(n_workers)
@@ -263,8 +269,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                     raise GuidedMatchError(f"cannot connect to the dask scheduler at {cfg.scheduler}: {exc}") from None
             else:
                 use = client
-            startup_s = client.take_startup() if backend == "local-cluster" and client is not None else \
-                time.perf_counter() - t0
+            startup_s = client.take_startup() if shared else time.perf_counter() - t0
         log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
         if cfg.progress:
             from tqdm.auto import tqdm

@@ -186,8 +186,6 @@ def _chunk_size(chunk_pairs: int, pairs: int, workers: int | None) -> int:
 def _choose_backend(cfg: CollectionConfig, client, work: int) -> tuple[str, int | None, str]:
     """``(backend, n_workers, reason)`` with backend in-process | local-cluster | scheduler | client."""
     if client is not None:
-        if getattr(client, "n_workers", None) is not None and hasattr(client, "take_startup"):   # a SharedCluster
-            return "local-cluster", client.n_workers, client.reason
         return "client", None, "attached to the given dask client"
     if cfg.scheduler is not None:
         return "scheduler", None, f"attached to the dask scheduler at {cfg.scheduler}"
