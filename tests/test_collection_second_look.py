@@ -39,9 +39,9 @@ def _chains_reference(a, c, inliers, names):
     return sorted(out)
 
 
-@settings(max_examples=40, deadline=None)
-@given(st.integers(0, 2**31 - 1), st.integers(3, 6), st.floats(0.3, 1.0))
-def test_chained_correspondences_equal_the_slow_reference(seed, n, density):
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(3, 6), st.floats(0.3, 1.0), st.booleans())
+def test_chained_correspondences_equal_the_slow_reference(seed, n, density, one_to_one):
     rng = np.random.default_rng(seed)
     names = [f"im{k}" for k in range(n)]
     nkp = {x: int(rng.integers(5, 30)) for x in names}
@@ -49,8 +49,12 @@ def test_chained_correspondences_equal_the_slow_reference(seed, n, density):
     for x, y in itertools.combinations(names, 2):
         if rng.random() < density:
             m = int(rng.integers(0, min(nkp[x], nkp[y]) + 1))
-            # one-to-one matches (inliers of a two-view geometry are), stored in either order
-            pair = np.stack([rng.permutation(nkp[x])[:m], rng.permutation(nkp[y])[:m]], axis=1)
+            # one-to-one matches (inliers of our two-view geometries are), stored in either order; or a keypoint in
+            # several matches (another matcher's rows): every chain through each of them
+            if one_to_one:
+                pair = np.stack([rng.permutation(nkp[x])[:m], rng.permutation(nkp[y])[:m]], axis=1)
+            else:
+                pair = np.stack([rng.integers(0, nkp[x], m), rng.integers(0, nkp[y], m)], axis=1)
             if rng.random() < 0.5:
                 inliers[(x, y)] = pair
             else:

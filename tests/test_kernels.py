@@ -469,6 +469,17 @@ def test_counting_order_is_stable_argsort(key, extra):
     assert len(offsets) == nbins + 1
 
 
+@settings(max_examples=150, deadline=None)
+@given(a=st.lists(st.integers(-5, 40), max_size=120), b=st.lists(st.integers(-5, 40), max_size=120))
+def test_sorted_join_is_searchsorted_left_and_right(a, b):
+    from guidedmatch.strip_index import sorted_join
+
+    a, b = np.sort(np.array(a, np.int64)), np.sort(np.array(b, np.int64))
+    lo, cnt = sorted_join(a, b)
+    np.testing.assert_array_equal(lo, np.searchsorted(b, a, "left"))
+    np.testing.assert_array_equal(cnt, np.searchsorted(b, a, "right") - np.searchsorted(b, a, "left"))
+
+
 # --------------------------------------------------------------------------- GEMM top-k
 def gemm_block(r, c, ties, seed):
     """A GEMM block ``dot (r, c)`` with column and row squared norms; ``ties``: small integers (many equal

@@ -5,7 +5,8 @@ candidate kernel (:func:`guidedmatch.kernels.guided_top2`) walks along each quer
 * :func:`build_strips` -- builds it (one ``nogil`` Numba pass, :func:`_strip_layout`);
 * :func:`counting_order` -- the stable counting sort behind it (the matcher's start and the collection workers use it
   too);
-* :func:`first_nonempty` -- the strip-skipping table the candidate kernel jumps over empty strips with.
+* :func:`first_nonempty` -- the strip-skipping table the candidate kernel jumps over empty strips with;
+* :func:`sorted_join` -- a merge of two sorted key arrays (the second look's chained correspondences use it).
 
 The Numba code here calls no kernel of another module: Numba's on-disk cache (``cache=True``) checks only the
 defining file of a cached function, so a kernel that calls or inlines another one must live in the same file
@@ -120,6 +121,31 @@ def counting_order(key, nbins):
         order[pos[key[i]]] = i
         pos[key[i]] += 1
     return order, offsets
+
+
+@njit(cache=True, nogil=True)
+def sorted_join(a, b):
+    """For ascending int64 keys ``a (N,)`` and ``b (M,)``: ``(lo, cnt)``, the first position of ``a[i]`` in ``b`` and
+    how many times it occurs there (0: absent; ``lo`` is then where it would go) -- ``searchsorted`` left and right
+    of every ``a[i]`` as one two-pointer merge, O(N + M).
+
+    >>> [x.tolist() for x in sorted_join(np.array([1, 3, 3, 7]), np.array([0, 3, 3, 5, 7]))]
+    [[1, 1, 1, 4], [0, 2, 2, 1]]
+    """
+    n, m = a.shape[0], b.shape[0]
+    lo = np.empty(n, np.int64)
+    cnt = np.zeros(n, np.int64)
+    p = 0
+    for i in range(n):
+        x = a[i]
+        while p < m and b[p] < x:
+            p += 1
+        lo[i] = p
+        q = p
+        while q < m and b[q] == x:
+            q += 1
+        cnt[i] = q - p
+    return lo, cnt
 
 
 def first_nonempty(S):

@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from ..strip_index import sorted_join
 from ..validation import check_bool, check_number, config_from
 
 __all__ = ["SecondLookConfig", "chained_correspondences", "chain_support", "describe", "priors", "second_look",
@@ -95,46 +96,63 @@ class SecondLookConfig:
 
 
 # ------------------------------------------------------------------------------------------------ the chains
-def _partner(inliers: np.ndarray, n: int, col: int) -> np.ndarray:
-    """``(n,)``: for each keypoint of the image in column ``col`` of ``inliers``, its match in the other (-1)."""
-    out = np.full(n, -1, np.int64)
-    if len(inliers):
-        out[inliers[:, col]] = inliers[:, 1 - col]
-    return out
-
-
-def chained_correspondences(a, c, inliers: dict, num_keypoints: dict, neighbours: dict) -> np.ndarray:
+def chained_correspondences(a, c, inliers: dict, num_keypoints: dict, neighbours: dict, cache: dict | None = None
+                            ) -> np.ndarray:
     """Distinct ``(i in a, k in c)`` pairs chained through every verified common neighbour ``b`` of ``a`` and ``c``:
     ``i`` matched to ``j`` in ``a-b``'s inliers and ``j`` to ``k`` in ``b-c``'s. ``(K, 2) int64``, sorted.
+
+    One merge of the inlier lists of every ``a-b`` and ``b-c`` on ``b``'s keypoint
+    (:func:`~guidedmatch.strip_index.sorted_join`): its cost follows the inliers, not the images' keypoint counts.
 
     Args:
         inliers: ``{(x, y): (M, 2) int array}`` inlier matches of every verified pair (either order; column 0 indexes
             ``x``'s keypoints). num_keypoints: ``{image: count}``. neighbours: ``{image: set of verified neighbours}``.
+        cache: a dict shared by calls on the same ``inliers`` (each pair's matches oriented and sorted once), or None.
 
     >>> inl = {("a", "b"): np.array([[0, 5], [1, 6]]), ("c", "b"): np.array([[9, 5], [8, 7]])}
     >>> chained_correspondences("a", "c", inl, {"a": 2, "b": 8, "c": 10}, {"a": {"b"}, "c": {"b"}}).tolist()
     [[0, 9]]
     """
-    parts = []
-    for b in sorted(neighbours.get(a, set()) & neighbours.get(c, set())):
-        ab = _pair_partner(a, b, inliers, num_keypoints)       # keypoint of b for each keypoint of a
-        cb = _pair_partner(c, b, inliers, num_keypoints)       # keypoint of b for each keypoint of c
-        bc = np.full(num_keypoints[b], -1, np.int64)
-        has = cb >= 0
-        bc[cb[has]] = np.flatnonzero(has)                       # keypoint of c for each keypoint of b
-        i = np.flatnonzero(ab >= 0)
-        k = bc[ab[i]]
-        ok = k >= 0
-        parts.append(np.stack([i[ok], k[ok]], axis=1))
-    if not parts:
+    cache = {} if cache is None else cache
+    common = sorted(neighbours.get(a, set()) & neighbours.get(c, set()))
+    if not common:
         return np.zeros((0, 2), np.int64)
-    return np.unique(np.concatenate(parts), axis=0)
+    ba = [_oriented(b, a, inliers, cache) for b in common]     # b's keypoint j <-> a's keypoint i, sorted by j
+    bc = [_oriented(b, c, inliers, cache) for b in common]     # b's keypoint j <-> c's keypoint k, sorted by j
+    # one join for every b at once: b's keypoint j keyed (position of b) * 2^32 + j, so both sides stay sorted (a
+    # merge: searchsorted of sorted keys)
+    na, nc = [len(x[0]) for x in ba], [len(x[0]) for x in bc]
+    shift = np.arange(len(common), dtype=np.int64) << 32
+    i = np.concatenate([x[1] for x in ba])
+    j = np.concatenate([x[0] for x in ba]) + np.repeat(shift, na)
+    jb = np.concatenate([x[0] for x in bc]) + np.repeat(shift, nc)
+    k = np.concatenate([x[1] for x in bc])
+    lo, cnt = sorted_join(j, jb)                               # the b-c matches of each a-b match's j
+    has = cnt > 0
+    i, lo, cnt = i[has], lo[has], cnt[has]
+    if not len(i):
+        return np.zeros((0, 2), np.int64)
+    if int(cnt.max()) == 1:                                    # one-to-one inliers (the usual case)
+        ik = np.stack([i, k[lo]], axis=1)
+    else:
+        rows = np.repeat(lo - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))
+        ik = np.stack([np.repeat(i, cnt), k[rows]], axis=1)
+    n = int(max(num_keypoints.get(c, 0), ik[:, 1].max() + 1))
+    code = np.unique(ik[:, 0] * n + ik[:, 1])                   # (i, k) sorted lexicographically, each once
+    return np.stack([code // n, code % n], axis=1)
 
 
-def _pair_partner(x, y, inliers: dict, num_keypoints: dict) -> np.ndarray:
-    if (x, y) in inliers:
-        return _partner(np.asarray(inliers[(x, y)], np.int64).reshape(-1, 2), num_keypoints[x], 0)
-    return _partner(np.asarray(inliers[(y, x)], np.int64).reshape(-1, 2), num_keypoints[x], 1)
+def _oriented(x, y, inliers: dict, cache: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The inlier matches of ``x-y`` as ``(x's keypoints, y's keypoints)``, sorted by x's (stable); cached."""
+    got = cache.get((x, y))
+    if got is None:
+        if (x, y) in inliers:
+            m = np.asarray(inliers[(x, y)], np.int64).reshape(-1, 2)
+        else:
+            m = np.asarray(inliers[(y, x)], np.int64).reshape(-1, 2)[:, ::-1]
+        o = np.argsort(m[:, 0], kind="stable")
+        got = cache[(x, y)] = (np.ascontiguousarray(m[o, 0]), np.ascontiguousarray(m[o, 1]))
+    return got
 
 
 def _neighbours(inliers: dict) -> dict:
@@ -176,9 +194,9 @@ def priors(pairs, inliers: dict, num_keypoints: dict) -> dict:
     neighbours = _neighbours(inliers)
     tracked = tracked_keypoints(inliers)
     none = np.zeros(0, np.int64)
-    out = {}
+    out, cache = {}, {}
     for a, c in pairs:
-        ch = chained_correspondences(a, c, inliers, num_keypoints, neighbours)
+        ch = chained_correspondences(a, c, inliers, num_keypoints, neighbours, cache)
         out[(a, c)] = (np.unique(ch[:, 0]), tracked.get(a, none))
         out[(c, a)] = (np.unique(ch[:, 1]), tracked.get(c, none))
     return out
@@ -186,8 +204,8 @@ def priors(pairs, inliers: dict, num_keypoints: dict) -> dict:
 
 def chain_support(candidates, inliers: dict, num_keypoints: dict) -> list[int]:
     """Number of chained correspondences (:func:`chained_correspondences`) of every ``(a, c)`` in ``candidates``."""
-    neighbours = _neighbours(inliers)
-    return [len(chained_correspondences(a, c, inliers, num_keypoints, neighbours)) for a, c in candidates]
+    neighbours, cache = _neighbours(inliers), {}
+    return [len(chained_correspondences(a, c, inliers, num_keypoints, neighbours, cache)) for a, c in candidates]
 
 
 # ------------------------------------------------------------------------------------------------ the graph
@@ -216,7 +234,7 @@ def _candidates(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondLo
     rejected ones (tried, not verified) with a verified common neighbour and at least ``min_chained`` chained
     correspondences (support = chains); highest support first (ties by name); ``(pairs, support, total)``."""
     verified = {frozenset(p) for p in inliers}
-    neighbours = _neighbours(inliers)
+    neighbours, cache = _neighbours(inliers), {}
     out = []
     for (x, y), m in inliers.items():
         p = frozenset((x, y))
@@ -228,7 +246,7 @@ def _candidates(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondLo
         a, c = sorted(p)
         if not (neighbours.get(a, set()) & neighbours.get(c, set())):
             continue
-        k = len(chained_correspondences(a, c, inliers, nkp, neighbours))
+        k = len(chained_correspondences(a, c, inliers, nkp, neighbours, cache))
         if k >= cfg.min_chained:
             out.append((-k, a, c))
     out.sort()
