@@ -21,9 +21,8 @@ import numpy as np
 def main() -> None:
     from guidedmatch import kernels   # before faiss (its bundled OpenBLAS: guidedmatch._runtime)
     from guidedmatch.collection.config import collection_matcher_config
-    from guidedmatch.collection.sources import ColmapSource
     from guidedmatch.matcher import match
-    from guidedmatch.prepared import prepare
+    from pair_phase_times import prepared_images   # tools/, beside this file
 
     import cv2
     import faiss
@@ -35,13 +34,7 @@ def main() -> None:
     npairs = int(sys.argv[3]) if len(sys.argv) > 3 else 80
     cfg = collection_matcher_config()
     pairs = [line.split() for line in open(pairfile) if line.strip()][:npairs]
-    src = ColmapSource(db)
-    prepared = {}
-    for a, b in pairs:
-        for n in (a, b):
-            if n not in prepared:
-                prepared[n] = prepare(src.load(n))
-                prepared[n].index()
+    prepared = prepared_images(db, pairs)
     calls, orig = [], kernels.guided_top2
 
     def spy(*args, **kw):

@@ -18,6 +18,21 @@ import sys
 import time
 
 
+def prepared_images(db: str, pairs) -> dict:
+    """``{name: PreparedImage}`` of every image of ``pairs`` in the COLMAP database ``db``, its index built."""
+    from guidedmatch.collection.sources import ColmapSource
+    from guidedmatch.prepared import prepare
+
+    src, prepared = ColmapSource(db), {}
+    for a, b in pairs:
+        for n in (a, b):
+            if n not in prepared:
+                prepared[n] = prepare(src.load(n))
+                if getattr(prepared[n], "has_index", False):
+                    prepared[n].index()
+    return prepared
+
+
 def main() -> None:
     import cv2
     import faiss
@@ -25,9 +40,7 @@ def main() -> None:
     from guidedmatch import kernels
     from guidedmatch.bruteforce import blas_one_thread
     from guidedmatch.collection.config import collection_matcher_config
-    from guidedmatch.collection.sources import ColmapSource
     from guidedmatch.matcher import match
-    from guidedmatch.prepared import prepare
 
     db, pairfile = sys.argv[1], sys.argv[2]
     reps = int(sys.argv[3]) if len(sys.argv) > 3 else 1
@@ -36,14 +49,7 @@ def main() -> None:
     cv2.setNumThreads(1)
     faiss.omp_set_num_threads(1)
     pairs = [line.split() for line in open(pairfile) if line.strip()]
-    src = ColmapSource(db)
-    prepared = {}
-    for a, b in pairs:
-        for n in (a, b):
-            if n not in prepared:
-                prepared[n] = prepare(src.load(n))
-                if getattr(prepared[n], "has_index", False):
-                    prepared[n].index()
+    prepared = prepared_images(db, pairs)
     match(prepared[pairs[0][0]], prepared[pairs[0][1]], "so+epi+ia", cfg)  # Numba's kernels loaded
     best = None
     with blas_one_thread(load_scipy=False):
