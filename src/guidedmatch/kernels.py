@@ -430,9 +430,9 @@ def _guided_py(queries, desc1, desc2, lines, use_band, band, xlo, xhi, cols, row
                 # the points of strip s in the cells overlapping [kmin, kmax]; a candidate must satisfy exactly the
                 # region predicate lo <= x <= hi and |a x + b y + c| <= band ([kmin, kmax] only limits the scan)
                 c0, c1 = _cells(c_k0, c_nk, c_h, c_ih, kmin, kmax)
-                # two passes: the scanned points that satisfy the predicate, written branch-free into buf (a data-
-                # dependent branch per point mispredicted about every other time: ~40 % of the kernel), then their
-                # distances in the same order
+                # two passes: the scanned points that satisfy the predicate, written branch-free into buf, then
+                # their distances in the same order (a branch per scanned point instead: fox's final passes 0.89 s
+                # vs 0.68 s, tools/kernel_probe.py)
                 nb = 0
                 for p in range(c_off[s * c_nk + c0], c_off[s * c_nk + c1 + 1] if c0 <= c1 else 0):
                     x = c_ps[p, 0]
