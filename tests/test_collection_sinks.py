@@ -909,6 +909,29 @@ def test_tighten_inliers_refits_small_baselines_only(tmp_path):
                for k, v in _geometry_rows(tmp_path / "db.db").items())
 
 
+def test_tighten_inliers_in_threads_writes_the_rows_of_one_thread(tmp_path, monkeypatch):
+    """The rows' selections and refits in 3 threads, 2 rows per chunk (several chunks, a partial last one): the same
+    database rows, counts and refits as in one thread -- small baselines (refit) and wide ones (tightened only)."""
+    from guidedmatch.collection import sinks
+    from guidedmatch.collection.sinks import tighten_two_view_inliers
+
+    pairs = [(s.x1n, s.x2n, F) for s, F in (_early_fit_pair(deg, seed) for deg, seed in
+                                           [(1.0, 3), (12.0, 4), (0.5, 5), (8.0, 6), (2.0, 7)])]
+    _two_view_db(tmp_path / "one.db", pairs)
+    shutil.copyfile(tmp_path / "one.db", tmp_path / "three.db")
+    one = tighten_two_view_inliers(tmp_path / "one.db", 1.5, threads=1)
+    chunked = sinks.ColmapSink._rewrite_inliers
+    monkeypatch.setattr(sinks.ColmapSink, "_rewrite_inliers",
+                        lambda self, *a, **k: chunked(self, *a, **dict(k, chunk=2)))
+    three = tighten_two_view_inliers(tmp_path / "three.db", 1.5, threads=3)
+    assert one["pairs_refit"] >= 2 and one["pairs_tightened"] == 5
+    assert {k: v for k, v in one.items() if k != "time_s"} == {k: v for k, v in three.items() if k != "time_s"}
+    a, b = _geometry_rows(tmp_path / "one.db"), _geometry_rows(tmp_path / "three.db")
+    assert a.keys() == b.keys() and all(all(np.array_equal(x, y) for x, y in zip(a[k], b[k])) for k in a)
+    with pytest.raises(ConfigError):
+        tighten_two_view_inliers(tmp_path / "one.db", 1.5, threads=0)
+
+
 def test_tighten_inliers_bad_input_and_lock(db_copy):
     from guidedmatch.collection.sinks import tighten_two_view_inliers
 

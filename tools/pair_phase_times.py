@@ -34,10 +34,10 @@ def prepared_images(db: str, pairs) -> dict:
 
 
 def main() -> None:
+    from guidedmatch import kernels  # before faiss: it sets OPENBLAS_CORETYPE for faiss' bundled OpenBLAS
+
     import cv2
     import faiss
-
-    from guidedmatch import kernels
     from guidedmatch.bruteforce import blas_one_thread
     from guidedmatch.collection.config import collection_matcher_config
     from guidedmatch.matcher import match

@@ -385,31 +385,21 @@ def median_triangulation_angle(F: np.ndarray, x1, x2, K1: np.ndarray, K2: np.nda
     >>> round(median_triangulation_angle(s.F, s.x1, s.x2, s.K1, s.K2), 2)
     0.74
     """
-    x1, x2 = (np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in (x1, x2))
+    x1, x2 = (np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 2)) for x in (x1, x2))
     if len(x1) < 5 or len(x1) != len(x2):
         return float("nan")
     K1, K2 = np.asarray(K1, dtype=np.float64), np.asarray(K2, dtype=np.float64)
-    d1 = np.c_[x1, np.ones(len(x1))] @ np.linalg.inv(K1).T          # rays of camera 1 (its frame)
-    d2 = np.c_[x2, np.ones(len(x2))] @ np.linalg.inv(K2).T
-    d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
-    d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
     E = K2.T @ np.asarray(F, dtype=np.float64) @ K1
     if not (np.isfinite(E).all() and np.any(E)):
         return float("nan")
     Ra, Rb, t = cv2.decomposeEssentialMat(E)
-    best = (-1, None)
-    for R in (Ra, Rb):
-        r2 = d2 @ R                                                 # camera-2 rays in camera 1's frame: R^T d2
-        b = np.sum(d1 * r2, 1)
-        det = b * b - 1.0                                           # of lambda1 d1 - lambda2 r2 = c (least squares)
-        for c in (-(R.T @ t).ravel(), (R.T @ t).ravel()):           # camera 2's centre for +t and -t
-            p, q = d1 @ c, r2 @ c
-            with np.errstate(divide="ignore", invalid="ignore"):
-                l1, l2 = (b * q - p) / det, (q - b * p) / det
-            front = int(np.count_nonzero((l1 > 0) & (l2 > 0)))
-            if front > best[0]:
-                best = (front, b)
-    return float(np.degrees(np.median(np.arccos(np.clip(best[1], -1.0, 1.0)))))
+    from ._epipolar_kernels import median_ray_angle
+
+    # the rays and the four poses' depths in one compiled pass per row (nogil: the collection's tightening runs its
+    # rows in threads); tests/test_epipolar.py checks it against the NumPy formulation, vectorized over the rays
+    return float(median_ray_angle(x1, x2, np.ascontiguousarray(np.linalg.inv(K1)),
+                                  np.ascontiguousarray(np.linalg.inv(K2)), np.ascontiguousarray(np.stack([Ra, Rb])),
+                                  np.ascontiguousarray(np.asarray(t, np.float64).ravel())))
 
 
 def refit_fundamental(F: np.ndarray, x1, x2, *, threshold: float = 1.0, seed: int = 0):

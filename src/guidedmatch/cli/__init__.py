@@ -49,6 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: the commands that load pycolmap (and with it glog's SIGTERM handler, replaced by :func:`plain_sigterm`)
 PYCOLMAP_COMMANDS = frozenset({"extract", "map", "sfm", "colmap", "bench"})
+#: commands that only match features already extracted: they start once, without huge pages for malloc -- the second
+#: start costs Herz-Jesus-P8's `guidedmatch colmap` 0.24 s of its ~2 s (median of 8 alternating runs each) and the
+#: pages did not change matching on the larger scenes (docs/performance.md, "Huge pages for malloc")
+NO_HUGEPAGE_COMMANDS = frozenset({"colmap", "hloc"})
 
 
 def _os_error_line(exc: OSError) -> str:
@@ -66,8 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    if own_process:   # a command will run: huge pages for malloc -- after parsing, so that --help, --version and
-        reexec_with_hugepages()   # a mistyped option do not pay a second start (returns when they do not apply)
+    if own_process and args.command not in NO_HUGEPAGE_COMMANDS:   # a command that extracts features will run: huge
+        reexec_with_hugepages()   # pages for malloc -- after parsing, so that --help, --version and a mistyped option
+        # do not pay a second start (returns when they do not apply)
     if args.command in PYCOLMAP_COMMANDS:
         plain_sigterm()   # SIGTERM (a job scheduler, timeout): end at once, no glog stack dump (guidedmatch._runtime)
     try:

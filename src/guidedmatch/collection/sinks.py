@@ -16,9 +16,11 @@ COLMAP conventions handled here
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -433,7 +435,8 @@ class ColmapSink(MatchSink):
         return degree
 
     def tighten_inliers(self, max_error_px: float = DEFAULT_INLIER_PX, *,
-                        min_inliers: int = COLMAP_MIN_INLIERS, refit_below_deg: float = DEFAULT_REFIT_DEG) -> dict:
+                        min_inliers: int = COLMAP_MIN_INLIERS, refit_below_deg: float = DEFAULT_REFIT_DEG,
+                        threads: int | None = None) -> dict:
         """Keep, in every two-view geometry of the database, the inlier matches within ``max_error_px`` of the row's
         own model: the Sampson distance to its F (COLMAP pixels, as the keypoints), or for a planar / panoramic row
         (configuration 4-6) the transfer error of its H or, when smaller, the Sampson distance to its F (such a row
@@ -458,6 +461,11 @@ class ColmapSink(MatchSink):
         0.481 (docs/collections.md; refitting every row instead made Herz-Jesus-P8's worse). A refit row's inliers all lie within ``max_error_px`` of its new F
         (or it keeps exactly ``min_inliers``), so a rerun does not refit it again.
 
+        ``threads`` (default: the usable cores): the rows' selections and refits run in that many threads (OpenCV's
+        fit and the angle's kernel release the GIL; the database is read and written in this thread, row by row in
+        pair-id order): the same rows as in one thread. On fox (2,001 rows, 215 refit) 2 threads took the pass from
+        3.9 to 1.6 s (collection history, nineteenth round).
+
         Returns ``{"max_error_px", "min_inliers", "refit_below_deg", "pairs", "pairs_tightened", "pairs_refit",
         "inliers_before", "inliers_after", "time_s"}`` (``pairs_refit``: rows whose F was replaced).
         """
@@ -468,9 +476,14 @@ class ColmapSink(MatchSink):
         check_number("tighten_inliers", "max_error_px", max_error_px, lo=0, lo_open=True)
         check_number("tighten_inliers", "min_inliers", min_inliers, lo=0, integer=True)
         check_number("tighten_inliers", "refit_below_deg", refit_below_deg, lo=0, hi=180)
+        if threads is None:
+            from .planning import _usable_cores
+
+            threads = _usable_cores()
+        check_number("tighten_inliers", "threads", threads, lo=1, integer=True)
         px, floor, refit_deg = float(max_error_px), int(min_inliers), float(refit_below_deg)
         K = self._calibration_matrices() if refit_deg > 0 else {}
-        refit = [0]
+        refit = []   # list.append is atomic: keep() runs in threads
 
         def rows(db, iid):
             return (np.asarray(db.read_keypoints(iid))[:, :2].astype(np.float64),)
@@ -488,13 +501,13 @@ class ColmapSink(MatchSink):
                 new_F, e = refit_fundamental(np.asarray(g.F), x1, x2)
                 if new_F is not None:
                     g.F, err = new_F, e
-                    refit[0] += 1
+                    refit.append(True)
             idx = closest_inliers(err, px, floor)
             return None if len(idx) == len(m) and new_F is None else idx
 
-        report = self._rewrite_inliers(lambda counts: counts > min_inliers, rows, keep)
+        report = self._rewrite_inliers(lambda counts: counts > min_inliers, rows, keep, threads=int(threads))
         return {"max_error_px": px, "min_inliers": floor, "refit_below_deg": refit_deg, "pairs": report["pairs"],
-                "pairs_tightened": report["pairs_rewritten"], "pairs_refit": refit[0],
+                "pairs_tightened": report["pairs_rewritten"], "pairs_refit": len(refit),
                 "inliers_before": report["inliers_before"], "inliers_after": report["inliers_after"],
                 "time_s": report["time_s"]}
 
@@ -506,12 +519,16 @@ class ColmapSink(MatchSink):
                 for c in self._db.read_all_cameras()}
         return {int(img.image_id): cams[int(img.camera_id)] for img in self._db.read_all_images()}
 
-    def _rewrite_inliers(self, candidates, rows, keep, cache_bytes: int = 256 << 20) -> dict:
+    def _rewrite_inliers(self, candidates, rows, keep, cache_bytes: int = 256 << 20, threads: int = 1,
+                         chunk: int = 64) -> dict:
         """The pass :meth:`cap_inliers` and :meth:`tighten_inliers` share: for every two-view geometry whose inlier
         count ``candidates(counts)`` selects (in pair-id order), ``keep(g, m, load, i1, i2)`` gives the indices into
         its ``(K, 2)`` inlier matches ``m`` to keep (or None: unchanged), and the row is rewritten with those in its
         own transaction. ``load(image_id)`` returns ``rows(db, image_id)``, kept in a cache of ``cache_bytes`` (oldest
-        out first). Returns ``{"pairs", "pairs_rewritten", "inliers_before", "inliers_after", "time_s"}``."""
+        out first). ``threads`` > 1: the rows are read, then ``keep`` runs on ``chunk`` of them at a time in that many
+        threads (it must be a pure function of its row: the result is the same as in one thread), then they are
+        written in pair-id order -- all database access stays in this thread. Returns ``{"pairs",
+        "pairs_rewritten", "inliers_before", "inliers_after", "time_s"}``."""
         import pycolmap
 
         if self._db is None:
@@ -531,21 +548,39 @@ class ColmapSink(MatchSink):
                 cache[iid] = rows(db, iid)
             return cache[iid]
 
-        for pid in np.sort(pids[candidates(counts)]):
-            i1, i2 = (int(i) for i in pycolmap.pair_id_to_image_pair(int(pid)))
+        def read(pid: int):
+            i1, i2 = (int(i) for i in pycolmap.pair_id_to_image_pair(pid))
             g = db.read_two_view_geometry(i1, i2)
             m = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)
-            idx = keep(g, m, load, i1, i2)
-            if idx is None:
-                continue
-            g.inlier_matches = np.ascontiguousarray(m[idx], dtype=np.uint32).reshape(-1, 2)
-            self.check_space(g.inlier_matches.nbytes)
-            with pycolmap.DatabaseTransaction(db):
-                db.update_two_view_geometry(i1, i2, g)
-            report["pairs_rewritten"] += 1
-            report["inliers_after"] -= len(m) - len(idx)
+            return g, m, i1, i2, {i1: load(i1), i2: load(i2)}
+
+        def decide(row):
+            g, m, i1, i2, loaded = row
+            return keep(g, m, loaded.__getitem__, i1, i2)
+
+        todo = np.sort(pids[candidates(counts)])
+        step = chunk if threads > 1 else 1
+        with ThreadPoolExecutor(threads) if threads > 1 else contextlib.nullcontext() as pool:
+            for s0 in range(0, len(todo), step):
+                batch = [read(int(pid)) for pid in todo[s0:s0 + step]]
+                for row, idx in zip(batch, pool.map(decide, batch) if pool else map(decide, batch)):
+                    self._write_kept(db, row, idx, report)   # in order, while the pool decides the next rows
         report["time_s"] = time.perf_counter() - t0
         return report
+
+    def _write_kept(self, db, row, idx, report: dict) -> None:
+        """Rewrite one row of :meth:`_rewrite_inliers` with the inliers ``idx`` it keeps (None: unchanged)."""
+        import pycolmap
+
+        g, m, i1, i2, _ = row
+        if idx is None:
+            return
+        g.inlier_matches = np.ascontiguousarray(m[idx], dtype=np.uint32).reshape(-1, 2)
+        self.check_space(g.inlier_matches.nbytes)
+        with pycolmap.DatabaseTransaction(db):
+            db.update_two_view_geometry(i1, i2, g)
+        report["pairs_rewritten"] += 1
+        report["inliers_after"] -= len(m) - len(idx)
 
     def close(self) -> None:
         db, self._db = self._db, None
@@ -578,10 +613,12 @@ def cap_two_view_inliers(database_path: str | os.PathLike, max_inliers: int, *, 
 
 
 def tighten_two_view_inliers(database_path: str | os.PathLike, max_error_px: float = DEFAULT_INLIER_PX, *,
-                             min_inliers: int = COLMAP_MIN_INLIERS, refit_below_deg: float = DEFAULT_REFIT_DEG) -> dict:
+                             min_inliers: int = COLMAP_MIN_INLIERS, refit_below_deg: float = DEFAULT_REFIT_DEG,
+                             threads: int | None = None) -> dict:
     """:meth:`ColmapSink.tighten_inliers` on a COLMAP database (under the sink's write lock): every two-view
     geometry keeps its inliers within ``max_error_px`` of its own F / H (at least the ``min_inliers`` closest), the F
-    of small-baseline rows (median triangulation angle < ``refit_below_deg``; 0 = never) fitted again first.
+    of small-baseline rows (median triangulation angle < ``refit_below_deg``; 0 = never) fitted again first, in
+    ``threads`` threads (default: the usable cores).
 
     >>> tighten_two_view_inliers("missing.db", 1.5)
     Traceback (most recent call last):
@@ -589,4 +626,5 @@ def tighten_two_view_inliers(database_path: str | os.PathLike, max_error_px: flo
     guidedmatch.errors.DatabaseError: COLMAP database not found: missing.db
     """
     with ColmapSink(database_path, geometry="none") as sink:
-        return sink.tighten_inliers(max_error_px, min_inliers=min_inliers, refit_below_deg=refit_below_deg)
+        return sink.tighten_inliers(max_error_px, min_inliers=min_inliers, refit_below_deg=refit_below_deg,
+                                    threads=threads)
