@@ -297,3 +297,23 @@ def test_only_commands_that_extract_features_start_again_with_huge_pages(monkeyp
     monkeypatch.setattr(sys, "argv", ["guidedmatch", *argv])
     assert cli.main() == 2
     assert calls == ([True] if reexec else [])
+
+
+def test_hugepages_off_for_children_removes_only_the_tunable_the_restart_set(monkeypatch):
+    """The tunable the restart set (hugepage_env marks it) leaves the environment that child processes inherit; a
+    GLIBC_TUNABLES the user set, with or without the mark, stays."""
+    import os
+
+    from guidedmatch import _runtime
+
+    env = _runtime.hugepage_env({}, thp_mode="always [madvise] never", glibc="glibc 2.36")
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    assert _runtime.hugepages_off_for_children() is True
+    assert "GLIBC_TUNABLES" not in os.environ and _runtime._HUGEPAGES_OURS not in os.environ
+    assert _runtime.hugepages_off_for_children() is False
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.hugetlb=1")      # the user's own
+    assert _runtime.hugepages_off_for_children() is False and os.environ["GLIBC_TUNABLES"] == "glibc.malloc.hugetlb=1"
+    monkeypatch.setenv(_runtime._HUGEPAGES_OURS, "glibc.malloc.hugetlb=1")
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.hugetlb=1:glibc.malloc.arena_max=2")   # changed since
+    assert _runtime.hugepages_off_for_children() is False and "arena_max" in os.environ["GLIBC_TUNABLES"]

@@ -26,6 +26,11 @@ def _start_local_cluster(n: int):
     import dask
     from distributed import Client, LocalCluster
 
+    from .._runtime import hugepages_off_for_children
+
+    # the command line's huge pages (set for the extraction) are not passed on: they cost the matching workers
+    hugepages_off_for_children()
+
     # allowed-failures 0: a task whose worker dies fails at once; our own retry (the pair alone) takes over.
     # MALLOC_TRIM_THRESHOLD_ unset: Dask sets it to 64 kB in every worker it spawns, and an explicit glibc trim
     # threshold switches off glibc's adaptive mmap threshold, so each large NumPy temporary of a pair is a fresh
