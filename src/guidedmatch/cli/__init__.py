@@ -49,9 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: the commands that load pycolmap (and with it glog's SIGTERM handler, replaced by :func:`plain_sigterm`)
 PYCOLMAP_COMMANDS = frozenset({"extract", "map", "sfm", "colmap", "bench"})
-#: commands that only match features already extracted: they start once, without huge pages for malloc -- the second
-#: start costs Herz-Jesus-P8's `guidedmatch colmap` 0.24 s of its ~2 s (median of 8 alternating runs each) and the
-#: pages did not change matching on the larger scenes (docs/performance.md, "Huge pages for malloc")
+#: commands that only match features already extracted: they start once, without huge pages for malloc, which cost
+#: matching time (Herz-Jesus-P8's `guidedmatch colmap` 2.17 -> 1.93 s, fox 71.9-82.2 -> 62.5-75.1 s, alternating runs;
+#: docs/performance.md, "Huge pages for malloc")
 NO_HUGEPAGE_COMMANDS = frozenset({"colmap", "hloc"})
 
 
