@@ -397,9 +397,7 @@ def median_triangulation_angle(F: np.ndarray, x1, x2, K1: np.ndarray, K2: np.nda
 
     # the rays and the four poses' depths in one compiled pass per row (nogil: the collection's tightening runs its
     # rows in threads); tests/test_epipolar.py checks it against the NumPy formulation, vectorized over the rays
-    return float(median_ray_angle(x1, x2, np.ascontiguousarray(np.linalg.inv(K1)),
-                                  np.ascontiguousarray(np.linalg.inv(K2)), np.ascontiguousarray(np.stack([Ra, Rb])),
-                                  np.ascontiguousarray(np.asarray(t, np.float64).ravel())))
+    return float(median_ray_angle(x1, x2, np.linalg.inv(K1), np.linalg.inv(K2), np.stack([Ra, Rb]), t.ravel()))
 
 
 def refit_fundamental(F: np.ndarray, x1, x2, *, threshold: float = 1.0, seed: int = 0):
