@@ -279,6 +279,29 @@ def test_same_results_on_a_simulated_other_cpu(pair_sets, monkeypatch):
         assert not bad, (seed, bad)
 
 
+def test_shared_quantizer_same_results_on_a_simulated_other_cpu(pair_sets, monkeypatch):
+    """A collection's shared quantizer (image 1's cells looked up, computed once per image and certified the same
+    way as the per-pair coarse step) changes nothing either."""
+    from guidedmatch.collection.quantizer import train_quantizer
+
+    _, views = pair_sets
+    names = sorted(views)
+    q = train_quantizer(np.concatenate([views[n].descriptors for n in names]), 60)
+
+    def run():
+        prepared = {n: prepare(views[n], quantizer=q) for n in names}
+        return {(a, b): signature(match(prepared[a], prepared[b], "so+epi+ia", collection_matcher_config()))
+                for a in names for b in names if a < b}
+
+    want = run()
+    assert sum(v[2] == "verified" for v in want.values()) == 3
+    for seed in (1, 2):
+        with monkeypatch.context() as m:
+            simulate_another_cpu(m, seed)
+            got = run()
+        assert got == want, seed
+
+
 # ------------------------------------------------------------------------------------------------ backends
 class DictSource:
     """FeatureSource double: features in a dict (picklable, shipped to Dask workers by value)."""

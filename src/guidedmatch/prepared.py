@@ -24,13 +24,19 @@ as fast as faiss on the CPU's own BLAS kernels and 3x faster where faiss's bundl
 index build (k-means + adding every descriptor) is faiss's GEMMs: 0.19 s for 61.6k SIFT on the CPU's kernels, 0.86-1.1
 s on the generic ones.
 
-Pickling drops the index (it is rebuilt on first use in the receiving process); everything else is plain arrays.
+In a collection the images can share one coarse quantizer (``prepare(features, quantizer=q)``,
+:mod:`guidedmatch.collection.quantizer`): no k-means per image, and a search looks up its queries' cells
+(:meth:`PreparedImage.query_cells`, computed once per image) instead of computing them against image 2's centroids.
+
+Pickling drops the index and the cells (rebuilt on first use in the receiving process); everything else is plain
+arrays.
 """
 from __future__ import annotations
 
 import math
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,7 +45,14 @@ from .errors import InputError
 from .features import Features
 from .validation import check_choice, check_number
 
+if TYPE_CHECKING:
+    from .collection.quantizer import SharedQuantizer
+
 __all__ = ["PreparedConfig", "PreparedImage", "prepare", "as_prepared"]
+
+#: an image uses a collection's shared quantizer when its own index would have at least this share of the shared
+#: one's cells (nlist ~ sqrt(N): at least 0.64x the median number of features the quantizer was sized for)
+SHARED_MIN_NLIST_SHARE = 0.8
 
 
 @dataclass(frozen=True)
@@ -80,12 +93,22 @@ class PreparedImage:
         config: the :class:`PreparedConfig`.
     """
 
-    def __init__(self, features: Features, config: PreparedConfig | None = None):
+    def __init__(self, features: Features, config: PreparedConfig | None = None,
+                 quantizer: SharedQuantizer | None = None):
         if not isinstance(features, Features):
             raise InputError(f"prepare() needs guidedmatch.features.Features, got {type(features).__name__}")
         self.features = features
         self.config = config or PreparedConfig()
         d = features.descriptors
+        if quantizer is not None and d.dtype != np.uint8 and quantizer.dim != d.shape[1]:
+            raise InputError(f"the shared quantizer has {quantizer.dim}-D centroids; these descriptors are "
+                             f"{d.shape[1]}-D")
+        self.quantizer = quantizer if d.dtype != np.uint8 else None  # binary descriptors have no index
+        if self.quantizer is not None and self._own_nlist < SHARED_MIN_NLIST_SHARE * self.quantizer.nlist:
+            # an image far below the collection's median size keeps its own k-means: the shared cells hold too few
+            # of its descriptors (buddha's 2,365-feature image, 17 per cell instead of 24, lost the weak first-pass
+            # pairs that let the second look register it)
+            self.quantizer = None
         self.binary = bool(d.dtype == np.uint8)
         self.byte_exact = False
         if self.binary:
@@ -102,6 +125,7 @@ class PreparedImage:
         self._index = None
         self._coarse = None  # (centroids, their squared norms, the index they came from): search2's coarse step
         self._list_ids = None  # each IVF list's descriptor indices (search2's rare exact fallback)
+        self._cells = {}  # nprobe -> (cells, distances) of every descriptor in the shared quantizer (query_cells)
         self._lock = threading.Lock()
         self.index_build_s = 0.0
 
@@ -118,6 +142,7 @@ class PreparedImage:
         state["_index"] = None
         state["_coarse"] = None
         state["_list_ids"] = None
+        state["_cells"] = {}
         state.pop("_lock", None)
         return state
 
@@ -134,7 +159,24 @@ class PreparedImage:
 
     @property
     def nlist(self) -> int:
+        if self.quantizer is not None:
+            return self.quantizer.nlist
+        return self._own_nlist
+
+    @property
+    def _own_nlist(self) -> int:
         return max(1, int(round(self.config.nlist_factor * math.sqrt(len(self)))))
+
+    @property
+    def nprobe(self) -> int:
+        """Cells a search of this image probes: ``config.nprobe``; with a shared quantizer, as many as cover at least
+        the share of this image its own index would (``nprobe * nlist / own nlist``, rounded, at least ``nprobe``):
+        an image with fewer features than the collection's median has fewer per cell, so it probes more cells
+        (buddha, 137 shared cells: a 3,000-feature image 5 of them instead of 4 of its own 110)."""
+        c = self.config
+        if self.quantizer is None:
+            return min(int(c.nprobe), self.nlist)
+        return int(min(self.nlist, max(c.nprobe, round(c.nprobe * self.nlist / self._own_nlist))))
 
     @property
     def build_comparisons(self) -> int:
@@ -145,6 +187,8 @@ class PreparedImage:
         if not self.has_index:
             return 0
         c, n, nlist = self.config, len(self), self.nlist
+        if self.quantizer is not None:  # no k-means of its own: every descriptor is assigned once
+            return int(n * nlist)
         return int(min(n, c.train_per_list * nlist) * nlist * c.kmeans_iters + n * nlist)
 
     def index(self):
@@ -168,8 +212,12 @@ class PreparedImage:
         nlist = self.nlist
         ntrain = min(n, c.train_per_list * nlist)
         rng = np.random.default_rng(c.seed)
-        train = d if ntrain >= n else d[np.sort(rng.choice(n, ntrain, replace=False))]
         quantizer = faiss.IndexFlatL2(dim)
+        if self.quantizer is not None:  # the collection's cells: nothing to train
+            quantizer.add(self.quantizer.centroids)
+            train = d[:min(n, 256)]  # only the 8-bit codes' (no-op) training reads it; k-means is skipped
+        else:
+            train = d if ntrain >= n else d[np.sort(rng.choice(n, ntrain, replace=False))]
         if self.byte_exact:
             # byte-valued descriptors (OpenCV / COLMAP SIFT): stored as 8-bit codes, no residual -- the same exact L2
             # distances from a quarter of the memory traffic (Herz-Jesus ~40k: search 30 % faster, same neighbours)
@@ -184,7 +232,7 @@ class PreparedImage:
         with _faiss_threads(1):
             index.train(train)
             index.add(d)
-        index.nprobe = min(int(c.nprobe), nlist)
+        index.nprobe = self.nprobe
         self._list_sizes = np.array([index.invlists.list_size(i) for i in range(nlist)], np.int64)
         self._list_ids = None  # each list's descriptor indices, read on first need (exact_top's rare fallback)
         self.index_build_s = time.perf_counter() - t0
@@ -192,6 +240,8 @@ class PreparedImage:
 
     def _centroids(self) -> tuple[np.ndarray, np.ndarray]:
         """The index's coarse centroids ``(nlist, D) float32`` and their squared norms (cached with the index)."""
+        if self.quantizer is not None:
+            return self.quantizer.centroids, self.quantizer.sqnorms
         c = self._coarse
         if c is None or c[2] is not self._index:
             index = self.index()
@@ -210,7 +260,22 @@ class PreparedImage:
         lists = [int(x) for x in np.asarray(lists).ravel() if x >= 0]
         return np.concatenate([self._list_ids[x] for x in lists]) if lists else np.zeros(0, np.int64)
 
-    def search2(self, queries: np.ndarray, byte_exact: bool = False):
+    def query_cells(self, nprobe: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``nprobe`` cells of every descriptor of this image in its shared quantizer, as a search of this image's
+        features in another image of the collection (whose :attr:`nprobe` it is) probes them: ``(cells (N, nprobe)
+        int64, sq (N, nprobe) float32)``, each row in cell order (:func:`coarse_cells`); computed on first call for
+        each ``nprobe`` (thread-safe), then kept."""
+        if self.quantizer is None:
+            raise InputError("query_cells() needs an image prepared with a shared quantizer")
+        k = int(min(max(int(nprobe), 1), self.quantizer.nlist))
+        with self._lock:
+            if k not in self._cells:
+                q = np.ascontiguousarray(self.features.descriptors, np.float32)
+                self._cells[k] = coarse_cells(q, self.quantizer.centroids, self.quantizer.sqnorms, k,
+                                              kernels.num_threads())
+            return self._cells[k]
+
+    def search2(self, queries: np.ndarray, byte_exact: bool = False, cells=None):
         """Approximate 2-NN of float ``queries (Q, D)`` in this image: ``(i1, s1, i2, s2, comparisons)``.
 
         The probed cells: the ``nprobe`` centroids nearest each query, exactly (the set of the GEMM's ``nprobe``
@@ -222,7 +287,9 @@ class PreparedImage:
         every CPU and thread count given the index (``byte_exact``: the queries are byte-valued too, and this image's
         8-bit codes give exact integer distances: faiss's K are only sorted, not recomputed); ``comparisons`` = the number of distance evaluations of the
         search: ``nlist`` centroid distances per query plus the size of every probed cell (the exact recompute of
-        a few of them is not counted again).
+        a few of them is not counted again). ``cells``: the queries' cells ``(Iq, Dq)`` in the shared quantizer
+        (rows of :meth:`query_cells` of the queries' image) instead of the coarse step here; they are counted at the
+        same ``nlist`` per query -- the price the unguided start's budget is set in -- though computed once per image.
         """
         index = self.index()
         if index is None:
@@ -231,33 +298,21 @@ class PreparedImage:
         # the calling thread's kernel thread count (1 in a collection's pair threads): a batch of >= 64 queries keeps
         # faiss's OpenMP team busy (Herz-Jesus ~40k unrelated pair: unguided start 0.6 -> 0.35 s on 2 cores)
         threads = kernels.num_threads() if len(q) >= 64 else 1
-        # the coarse step (nearest nprobe of nlist centroids) as NumPy's GEMM + a fused top-k per row, the same cells as
-        # faiss's flat quantizer: 68k queries vs 637 centroids 0.16-0.22 s, one thread. faiss took 0.57-0.64 s while
-        # its bundled OpenBLAS ran generic kernels (_runtime.pin_faiss_blas), 0.18-0.21 s on the CPU's own; ours does
-        # not depend on how faiss's BLAS was loaded (docs/pairs.md)
-        cent, cn = self._centroids()
-        nprobe = min(int(index.nprobe), self.nlist)
-        Ic, Dc = kernels.topk_gemm(q, cent, cn, min(nprobe + 1, self.nlist), threads)
-        Iq, Dq = Ic[:, :nprobe], Dc[:, :nprobe]
-        if Ic.shape[1] > nprobe:  # which cells must not depend on the GEMM's rounding: certify the set
-            qn = np.einsum("ij,ij->i", q, q)
-            delta = exact.gemm_delta(qn, float(cn.max()), q.shape[1])
-            bad = np.flatnonzero(~(Dc[:, nprobe].astype(np.float64) - delta > Dc[:, nprobe - 1] + delta))
-            if len(bad):  # a near-tie at the nprobe-th cell: those queries' cells exactly, among every centroid the
-                # bound cannot rule out (approximate distance within 2 delta of the nprobe-th)
-                Iq, Dq = Iq.copy(), Dq.copy()
-                Iq[bad], sq = _exact_cells(q[bad], cent, (qn[bad, None] + cn[None, :]) - 2.0 * (q[bad] @ cent.T),
-                                           delta[bad], nprobe)
-                Dq[bad] = sq.astype(np.float32)
-        # cells in index order: the scan order, hence faiss's order among equal distances, is the same on every CPU
-        # (faiss ignores the coarse distances of these non-residual indexes)
-        o = np.argsort(Iq, axis=1, kind="stable")
-        r = np.arange(len(q))[:, None]
-        Iq, Dq = np.ascontiguousarray(Iq[r, o]), np.ascontiguousarray(Dq[r, o], np.float32)
+        # the coarse step (nearest nprobe of nlist centroids, coarse_cells): ours, not faiss's, so it does not depend
+        # on how faiss's BLAS was loaded (docs/pairs.md)
+        nprobe = self.nprobe
+        if cells is None:
+            cent, cn = self._centroids()
+            Iq, Dq = coarse_cells(q, cent, cn, nprobe, threads)
+        else:  # the queries' cells in the collection's shared quantizer, computed once per image (query_cells)
+            Iq, Dq = cells
         k = exact.K
         with _faiss_threads(threads):
             D, I = index.search_preassigned(q, k, Iq, Dq)
-        comparisons = int(len(q)) * self.nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
+        # a shared quantizer's coarse step is charged at this image's own nlist: the unguided start's budget then buys
+        # as many queries as with the image's own index (at the shared nlist a small image's budget bought fewer:
+        # buddha's 2,365-feature image lost the first-pass pairs that let the second look register it)
+        comparisons = int(len(q)) * self._own_nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
         I = I.astype(np.int64)
         D = np.where(I >= 0, D, np.inf).astype(np.float32)
         if byte_exact and self.byte_exact:
@@ -266,6 +321,34 @@ class PreparedImage:
             top, sq = exact.exact_top(q, self.features.descriptors, I, D, 2, gamma=exact.sum_gamma(q.shape[1]),
                                       domain=lambda i: self._list_members(Iq[i]))
         return top[:, 0], sq[:, 0], top[:, 1], sq[:, 1], comparisons
+
+
+def coarse_cells(q: np.ndarray, cent: np.ndarray, cn: np.ndarray, nprobe: int, threads: int):
+    """The ``nprobe`` nearest of the centroids ``cent (C, D)`` (squared norms ``cn``) of each float32 row of ``q``,
+    exactly: ``(cells (Q, nprobe) int64, sq (Q, nprobe) float32)``, each row in cell (index) order.
+
+    NumPy's GEMM + a fused top-k per row (:func:`guidedmatch.kernels.topk_gemm`, the same cells as faiss's flat
+    quantizer: 68k queries vs 637 centroids 0.16-0.22 s, one thread; faiss took 0.57-0.64 s while its bundled OpenBLAS
+    ran generic kernels, :func:`guidedmatch._runtime.pin_faiss_blas`); the set is certified by the gap to the next
+    centroid against the GEMM's error bound, else recomputed exactly (:mod:`guidedmatch.exact`), so which cells does
+    not depend on the GEMM's rounding. Cell order fixes the scan order, hence faiss's order among equal distances,
+    on every CPU (faiss ignores the coarse distances of these non-residual indexes)."""
+    nlist = len(cent)
+    Ic, Dc = kernels.topk_gemm(q, cent, cn, min(nprobe + 1, nlist), threads)
+    Iq, Dq = Ic[:, :nprobe], Dc[:, :nprobe]
+    if Ic.shape[1] > nprobe:  # certify the set
+        qn = np.einsum("ij,ij->i", q, q)
+        delta = exact.gemm_delta(qn, float(cn.max()), q.shape[1])
+        bad = np.flatnonzero(~(Dc[:, nprobe].astype(np.float64) - delta > Dc[:, nprobe - 1] + delta))
+        if len(bad):  # a near-tie at the nprobe-th cell: those queries' cells exactly, among every centroid the
+            # bound cannot rule out (approximate distance within 2 delta of the nprobe-th)
+            Iq, Dq = Iq.copy(), Dq.copy()
+            Iq[bad], sq = _exact_cells(q[bad], cent, (qn[bad, None] + cn[None, :]) - 2.0 * (q[bad] @ cent.T),
+                                       delta[bad], nprobe)
+            Dq[bad] = sq.astype(np.float32)
+    o = np.argsort(Iq, axis=1, kind="stable")
+    r = np.arange(len(q))[:, None]
+    return np.ascontiguousarray(Iq[r, o]), np.ascontiguousarray(Dq[r, o], np.float32)
 
 
 def _exact_cells(q: np.ndarray, cent: np.ndarray, approx: np.ndarray, delta: np.ndarray, nprobe: int):
@@ -294,8 +377,11 @@ class _faiss_threads:
         faiss.omp_set_num_threads(self.old)
 
 
-def prepare(features: Features, config: PreparedConfig | None = None) -> PreparedImage:
-    """Prepare ``features`` for matching against many images (see the module doc).
+def prepare(features: Features, config: PreparedConfig | None = None,
+            quantizer: SharedQuantizer | None = None) -> PreparedImage:
+    """Prepare ``features`` for matching against many images (see the module doc); ``quantizer``: the collection's
+    :class:`~guidedmatch.collection.quantizer.SharedQuantizer` (its images' indexes share the cells; searches look up
+    the queries' cells).
 
     >>> import numpy as np
     >>> from guidedmatch.features import Features
@@ -308,7 +394,7 @@ def prepare(features: Features, config: PreparedConfig | None = None) -> Prepare
     >>> i1.tolist(), s1.tolist()
     ([0, 1, 2], [0.0, 0.0, 0.0])
     """
-    return PreparedImage(features, config)
+    return PreparedImage(features, config, quantizer)
 
 
 def as_prepared(x, config: PreparedConfig | None = None) -> PreparedImage:
@@ -367,7 +453,7 @@ class UnguidedSearch:
         if self.ivf_queries:
             return self.ivf_comparisons / self.ivf_queries
         nlist = self.p2.nlist
-        return float(nlist + min(self.p2.config.nprobe, nlist) * n2 / nlist)
+        return float(nlist + self.p2.nprobe * n2 / nlist)
 
     def __enter__(self) -> "UnguidedSearch":
         if self.kind == "gemm" or (self.kind == "ivf" and self.exact_budget > 0):
@@ -406,7 +492,12 @@ class UnguidedSearch:
                 t0 = time.perf_counter()
                 self.p2.index()
                 self.index_build_s += time.perf_counter() - t0
-            out = self.p2.search2(self.p1.descriptors[queries], byte_exact=self.p1.byte_exact)
+            cells = None
+            q1, q2 = self.p1.quantizer, self.p2.quantizer
+            if q1 is not None and q2 is not None and q1.token == q2.token:  # the collection's quantizer: image 1's
+                Iq, Dq = self.p1.query_cells(self.p2.nprobe)                 # cells, computed once for all its pairs
+                cells = (Iq[queries], Dq[queries])
+            out = self.p2.search2(self.p1.descriptors[queries], byte_exact=self.p1.byte_exact, cells=cells)
             self.ivf_queries += len(queries)
             self.ivf_comparisons += out[4]
             return out

@@ -57,6 +57,11 @@ def add_matching_options(p: argparse.ArgumentParser, modes) -> None:
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
                    help="in-process runs: pairs matched at once on N threads (default: one per core)")
     p.add_argument("--retries", type=nonneg_int, default=1, help="retries of a failed pair (default 1)")
+    p.add_argument("--shared-quantizer", choices=("auto", "on", "off"), default="off",
+                   help="one IVF coarse quantizer for every image, so each image's cells are computed once, not once "
+                        "per pair (auto: from 16 images; default off: every image its own k-means, each pair as "
+                        "guidedmatch.match gives it -- on was 8 %% faster on fox, with worse poses there; "
+                        "docs/collections.md)")
     p.add_argument("--cache-mb", type=positive_int, default=1024, metavar="MB",
                    help="per process (each worker, or this one in-process): loaded images kept, MB (default 1024: "
                         "~100 images of 8192 SIFT features, ~12 of 70k); a collection that does not fit is matched "
@@ -130,7 +135,8 @@ def _collection_config(args, log_default: Path):
         raise ConfigError(f"bad --config: {exc}") from None
     return CollectionConfig(mode=args.mode, matcher=matcher, workers=args.workers,
                             threads=args.threads, scheduler=args.scheduler, retries=args.retries, progress=not args.no_progress,
-                            cache_mb=float(args.cache_mb), log_path=None if str(log).lower() == "none" else log)
+                            cache_mb=float(args.cache_mb), log_path=None if str(log).lower() == "none" else log,
+                            shared_quantizer=args.shared_quantizer)
 
 
 def _print_pairs(pairs) -> None:

@@ -65,6 +65,8 @@ class CollectionConfig:
     cache_mb: float = 1024.0                   # per worker process: LRU bound on cached images, MB (engine doc)
     inprocess_max_work: int = 10_000_000       # auto: in-process when sum over pairs of (n1 + n2) is at most this
     report_max_pairs: int = 100_000            # per-pair dicts kept in the report (the log gets all of them)
+    shared_quantizer: str = "off"              # one IVF coarse quantizer for all images: "on", "auto" (from 16
+                                               # images) or "off" (opt-in: fox 0.52x -> 0.48x, poses worse; quantizer.py)
 
     def __post_init__(self) -> None:
         own = "CollectionConfig"
@@ -86,3 +88,4 @@ class CollectionConfig:
         check_number(own, "cache_mb", self.cache_mb, lo=0)
         check_number(own, "inprocess_max_work", self.inprocess_max_work, lo=0, integer=True)
         check_number(own, "report_max_pairs", self.report_max_pairs, lo=0, integer=True)
+        check_choice(own, "shared_quantizer", self.shared_quantizer, ("auto", "on", "off"))

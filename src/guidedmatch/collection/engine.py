@@ -84,6 +84,16 @@ rerun gives the same matches as an uninterrupted run.
 Each pair: :func:`guidedmatch.matcher.match` (``mode``, ``matcher`` config), then the two-view verdict: the
 matcher's own ``result.geometry`` (every matcher result carries one; its time is part of ``match_s``).
 
+One coarse quantizer (``shared_quantizer``, opt-in)
+---------------------------------------------------
+With ``"on"`` (or ``"auto"``, from 16 images), every image's approximate index shares one k-means quantizer trained
+for the run (:mod:`~guidedmatch.collection.quantizer`, in a thread while a local cluster starts), so each image's
+cells are computed once for all its pairs instead of once per pair (fox, 67 images: 0.52x -> 0.48x COLMAP's matching
+time, but worse poses: docs/collections.md). A pair then gives the matches of ``match(prepare(a, quantizer=q),
+prepare(b, quantizer=q))`` with the report's quantizer (``totals["quantizer"]``;
+:func:`~guidedmatch.collection.quantizer.collection_quantizer` trains the same one again), not those of ``match(a,
+b)`` alone; the default ``"off"`` gives those.
+
 Where the code is
 -----------------
 This module is the flow of :func:`match_collection`: check the pairs, skip the done ones, choose the backend, plan
@@ -94,6 +104,7 @@ the tasks, run them, report. The rest of the package ``guidedmatch.collection``,
 * ``planning`` -- the backend rule, chunk sizes, :func:`plan_tasks` / :func:`resident_blocks` (sweeps), the task
   queue;
 * ``cache`` -- the per-process image cache and the run's task spec;
+* ``quantizer`` -- the run's shared IVF coarse quantizer;
 * ``worker`` -- what runs where the pairs are matched: ``run_task``, the anchor token, the process set-up;
 * ``inprocess`` -- the thread-pool backend with its start-up prefetch;
 * ``dask_backend`` -- the local cluster and the Dask scheduling loop;
@@ -102,6 +113,7 @@ the tasks, run them, report. The rest of the package ``guidedmatch.collection``,
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import pickle
 import sys
@@ -117,6 +129,7 @@ from .inprocess import _run_inprocess
 from .planning import (CACHE_BYTES_PER_FEATURE, INPROCESS_RULE, _choose_backend, _chunk_size, _Queue, _usable_cores,
                        plan_tasks)
 from .planning import resident_blocks  # noqa: F401 - public, found here too
+from .quantizer import collection_quantizer, train_meanwhile
 from .report import CollectionReport, PairOutcome, _json_default
 from .worker import run_task  # noqa: F401 - the task function, found here too (Dask sends worker.run_task)
 from .writer import _NoBar, _Writer
@@ -174,7 +187,9 @@ def shared_cluster(source, pairs, sink, config: CollectionConfig | dict | None =
         yield None
         return
     _check_picklable(source)
-    with SharedCluster(n, reason) as handle:
+    with train_meanwhile(source, cfg.matcher, cfg.shared_quantizer):
+        handle = SharedCluster(n, reason)
+    with handle:
         yield handle
 
 
@@ -258,7 +273,8 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             if shared:
                 use = client.client
             elif backend == "local-cluster":
-                cluster, own_client = _start_local_cluster(n_workers)
+                with train_meanwhile(source, cfg.matcher, cfg.shared_quantizer):  # while the workers start
+                    cluster, own_client = _start_local_cluster(n_workers)
                 use = own_client
             elif backend == "scheduler":
                 from distributed import Client
@@ -270,6 +286,9 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             else:
                 use = client
             startup_s = client.take_startup() if shared else time.perf_counter() - t0
+        quantizer, quantizer_info = (collection_quantizer(source, cfg.matcher, cfg.shared_quantizer) if todo
+                                     else (None, dict(used=False, why="nothing to do")))
+        spec = dataclasses.replace(spec, quantizer=quantizer)
         log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
         if cfg.progress:
             from tqdm.auto import tqdm
@@ -317,7 +336,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                   pairs_per_s=writer.done / wall if wall > 0 else 0.0, chunk_pairs=chunk,
                   max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process"
                   else (1 if facts.get("threads", 1) <= 1 else 2 * facts["threads"]),
-                  cache_mb=cfg.cache_mb, prepared=_has_prepared(),
+                  cache_mb=cfg.cache_mb, prepared=_has_prepared(), quantizer=quantizer_info,
                   retried=sum(1 for k, v in writer.attempts.items() if v > 1))
     report = CollectionReport(writer.done, skipped, writer.failed, writer.per_pair, totals, wall)
     if log is not None:

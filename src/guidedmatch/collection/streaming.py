@@ -8,7 +8,9 @@ on its futures together with its own, and hands each finished one back (:meth:`P
 that writes. Everything else is the in-process engine's: the image cache (one per run, bounded by ``cache_mb``), the
 per-pair function (:func:`~guidedmatch.collection.worker._match_one`), the writer with its retries, log lines and
 totals, and the single-threaded libraries inside each pool thread (:meth:`PairStream.thread_limits`) -- so a pair
-gives the same matches as in :func:`~guidedmatch.collection.engine.match_collection`.
+gives the same matches as in :func:`~guidedmatch.collection.engine.match_collection` with
+``shared_quantizer="off"`` (a stream's images are not all known when its first pairs start: each image keeps its own
+k-means, :mod:`~guidedmatch.collection.quantizer`).
 """
 from __future__ import annotations
 

@@ -157,7 +157,7 @@ def extract_and_match(conf: SfmConfig, paths: SfmPaths, names: list[str], spec: 
         todo = [n for n in names if before_counts.get(n, 0) == 0]
         workers = max(1, (os.cpu_count() or 1) if conf.num_threads == -1 else conf.num_threads)
         cconf = CollectionConfig(mode=conf.mode, matcher=conf.matcher_for(len(names)), workers=0, progress=False,
-                                 log_path=str(paths.pair_log))
+                                 log_path=str(paths.pair_log), shared_quantizer="off")  # images still arriving
         from ..collection.planning import _usable_cores
 
         threads = cconf.threads or _usable_cores()

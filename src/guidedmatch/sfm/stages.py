@@ -444,9 +444,11 @@ def match_main(conf: SfmConfig, paths: SfmPaths, names: list[str], early: dict |
             # after an overlap, usually nothing is left for this pass: no empty progress bar then
             left = (todo if early is None else
                     [p for p in todo if frozenset(p) not in {frozenset(q) for q in early["oriented"]}])
+            # every image its own k-means, as in the extraction's stream (sfm/overlap.py): which pairs the stream
+            # matched depends on timing, so a shared quantizer here would make a pair's matches depend on it too
             cconf = CollectionConfig(mode=conf.mode, matcher=conf.matcher_for(len(usable)), workers=conf.workers,
                                      scheduler=conf.scheduler, progress=conf.progress and bool(left),
-                                     log_path=str(paths.pair_log))
+                                     log_path=str(paths.pair_log), shared_quantizer="off")
             done = match_into_database(source, todo, paths.database, cconf, geometry=conf.geometry,
                                        max_inliers_per_pair=conf.max_inliers_per_pair, expand=expand,
                                        second_look={} if second_look_on(conf.second_look, conf.geometry) else None,
