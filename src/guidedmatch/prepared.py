@@ -36,7 +36,6 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,9 +43,6 @@ from . import exact, kernels
 from .errors import InputError
 from .features import Features
 from .validation import check_choice, check_number
-
-if TYPE_CHECKING:
-    from .collection.quantizer import SharedQuantizer
 
 __all__ = ["PreparedConfig", "PreparedImage", "prepare", "as_prepared"]
 
@@ -91,10 +87,13 @@ class PreparedImage:
         sqnorms: ``(N,) float32`` squared L2 norms of float descriptors (None for binary).
         finite: every descriptor value is known to be finite (binary, or all ``sqnorms`` finite).
         config: the :class:`PreparedConfig`.
+        quantizer: the collection's :class:`~guidedmatch.collection.quantizer.SharedQuantizer` this image's index
+            uses, or None (its own k-means: no quantizer given, binary descriptors, or an image under 0.64x the size
+            the quantizer was made for).
     """
 
     def __init__(self, features: Features, config: PreparedConfig | None = None,
-                 quantizer: SharedQuantizer | None = None):
+                 quantizer=None):
         if not isinstance(features, Features):
             raise InputError(f"prepare() needs guidedmatch.features.Features, got {type(features).__name__}")
         self.features = features
@@ -378,7 +377,7 @@ class _faiss_threads:
 
 
 def prepare(features: Features, config: PreparedConfig | None = None,
-            quantizer: SharedQuantizer | None = None) -> PreparedImage:
+            quantizer=None) -> PreparedImage:
     """Prepare ``features`` for matching against many images (see the module doc); ``quantizer``: the collection's
     :class:`~guidedmatch.collection.quantizer.SharedQuantizer` (its images' indexes share the cells; searches look up
     the queries' cells).
