@@ -249,12 +249,22 @@ def cmd_colmap(args) -> int:
         raise ConfigError(f"--refit-below-deg must be in [0, 180] (0 = never); got {args.refit_below_deg}")
     expand = expansion_wanted(args.pairs, args.expand, args.expand_rounds)
     look_settings = second_look_settings(args)
-    cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
-    done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
-                               max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
-                               second_look=look_settings,
-                               inlier_px=args.inlier_px, refit_below_deg=args.refit_below_deg,
-                               cap_above=args.cap_above)
+    from ..collection.sink_base import WriteLock
+
+    # another writer of this database is refused here, before this run opens it: opening it (COLMAP's schema set-up
+    # takes SQLite's write lock for a moment) could make the running writer's next commit fail with "database is
+    # locked" (the fault bench's two-writers case); the run's sinks share this lock
+    lock = WriteLock(db, reentrant=True).acquire() if db.is_file() else None
+    try:
+        cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
+        done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
+                                   max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
+                                   second_look=look_settings,
+                                   inlier_px=args.inlier_px, refit_below_deg=args.refit_below_deg,
+                                   cap_above=args.cap_above)
+    finally:
+        if lock is not None:
+            lock.release()
     if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:
