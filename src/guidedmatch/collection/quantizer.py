@@ -31,8 +31,8 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["SharedQuantizer", "train_quantizer", "collection_quantizer", "train_meanwhile", "MIN_IMAGES", "SAMPLE_IMAGES", "PER_LIST",
-           "ITERS"]
+__all__ = ["SharedQuantizer", "train_quantizer", "collection_quantizer", "train_meanwhile", "MIN_IMAGES", "SAMPLE_IMAGES",
+           "PER_LIST", "ITERS"]
 
 MIN_IMAGES = 16      # "auto": a shared quantizer from this many images in the source on
 SAMPLE_IMAGES = 32   # images the training sample is drawn from (evenly spread over the sorted names)
