@@ -7,8 +7,8 @@ Usage::
     python tools/pair_phase_times.py DATABASE PAIRS_FILE [REPEATS] ['{"band_px": 3}']
 
 PAIRS_FILE: ``name1 name2`` lines; the JSON: matcher settings over the collection defaults, and
-``"shared_quantizer": "on" | "off" | "auto"`` (default "auto", as ``guidedmatch colmap``: one coarse quantizer for
-the database's images from 16 images on, ``guidedmatch.collection.quantizer``). Prints one JSON object (the best of
+``"shared_quantizer": "on" | "off" | "auto"`` (default "off", as ``guidedmatch colmap``; "on": one coarse quantizer
+for the database's images, ``guidedmatch.collection.quantizer``). Prints one JSON object (the best of
 REPEATS): wall time, per pair, phase times, matches, inliers, verified pairs, the quantizer used.
 """
 from __future__ import annotations
@@ -50,7 +50,7 @@ def main() -> None:
     db, pairfile = sys.argv[1], sys.argv[2]
     reps = int(sys.argv[3]) if len(sys.argv) > 3 else 1
     settings = json.loads(sys.argv[4]) if len(sys.argv) > 4 else {}
-    mode = settings.pop("shared_quantizer", "auto")
+    mode = settings.pop("shared_quantizer", "off")
     cfg = collection_matcher_config(settings or None)
     kernels.limit_threads_here(1)
     cv2.setNumThreads(1)

@@ -209,13 +209,13 @@ class PreparedImage:
         d = np.ascontiguousarray(self.features.descriptors, np.float32)
         n, dim = d.shape
         nlist = self.nlist
-        ntrain = min(n, c.train_per_list * nlist)
-        rng = np.random.default_rng(c.seed)
         quantizer = faiss.IndexFlatL2(dim)
         if self.quantizer is not None:  # the collection's cells: nothing to train
             quantizer.add(self.quantizer.centroids)
             train = d[:min(n, 256)]  # only the 8-bit codes' (no-op) training reads it; k-means is skipped
         else:
+            ntrain = min(n, c.train_per_list * nlist)
+            rng = np.random.default_rng(c.seed)
             train = d if ntrain >= n else d[np.sort(rng.choice(n, ntrain, replace=False))]
         if self.byte_exact:
             # byte-valued descriptors (OpenCV / COLMAP SIFT): stored as 8-bit codes, no residual -- the same exact L2
@@ -287,8 +287,9 @@ class PreparedImage:
         8-bit codes give exact integer distances: faiss's K are only sorted, not recomputed); ``comparisons`` = the number of distance evaluations of the
         search: ``nlist`` centroid distances per query plus the size of every probed cell (the exact recompute of
         a few of them is not counted again). ``cells``: the queries' cells ``(Iq, Dq)`` in the shared quantizer
-        (rows of :meth:`query_cells` of the queries' image) instead of the coarse step here; they are counted at the
-        same ``nlist`` per query -- the price the unguided start's budget is set in -- though computed once per image.
+        (rows of :meth:`query_cells` of the queries' image) instead of the coarse step here. With a shared quantizer the
+        coarse step is counted at this image's own-index ``nlist`` per query (what its own index would cost, the price
+        the unguided start's budget is set in), though the cells are computed once per image.
         """
         index = self.index()
         if index is None:

@@ -3,6 +3,7 @@ matching with the collection engine."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 
 from ..base import DEFAULT_INLIER_PX, DEFAULT_REFIT_DEG
@@ -254,17 +255,13 @@ def cmd_colmap(args) -> int:
     # another writer of this database is refused here, before this run opens it: opening it (COLMAP's schema set-up
     # takes SQLite's write lock for a moment) could make the running writer's next commit fail with "database is
     # locked" (the fault bench's two-writers case); the run's sinks share this lock
-    lock = WriteLock(db, reentrant=True).acquire() if db.is_file() else None
-    try:
+    with WriteLock(db, reentrant=True) if db.is_file() else contextlib.nullcontext():
         cfg, source, pairs = _setup(args, db, lambda: ColmapSource(db), args.pairs)
         done = match_into_database(source, pairs, db, cfg, geometry=args.geometry,
                                    max_inliers_per_pair=args.max_inliers_per_pair, expand=expand,
                                    second_look=look_settings,
                                    inlier_px=args.inlier_px, refit_below_deg=args.refit_below_deg,
                                    cap_above=args.cap_above)
-    finally:
-        if lock is not None:
-            lock.release()
     if args.second_look is True and args.geometry != "ours":
         print("second look: not run (it reads our two-view geometries back: --geometry ours)")
     if (look := done["second_look"]) is not None:

@@ -29,7 +29,7 @@ class _TaskSpec:
     matcher: MatcherConfig
     cache_bytes: int
     single_thread: bool
-    quantizer: Any = None  # the run's guidedmatch.prepared.SharedQuantizer (collection.quantizer), or None
+    quantizer: Any = None  # the run's guidedmatch.collection.quantizer.SharedQuantizer, or None
 
 
 @dataclass
@@ -106,12 +106,7 @@ class _ImageCache:
                 return item
             t0 = time.perf_counter()
             feats = self.source.load(name)
-            if self.prepare is None:
-                prepared = feats
-            elif self.spec.quantizer is not None:
-                prepared = self.prepare(feats, quantizer=self.spec.quantizer)
-            else:
-                prepared = self.prepare(feats)
+            prepared = feats if self.prepare is None else self.prepare(feats, quantizer=self.spec.quantizer)
             extra = 0 if prepared is feats else _prepared_nbytes(prepared)
             item = _CachedImage(feats, prepared, _nbytes(feats) + extra)
             self.load_s += time.perf_counter() - t0

@@ -114,9 +114,7 @@ def collection_quantizer(source, matcher, mode: str = "auto"):
 
 
 def _train(source, pick, key):
-    import faiss
-
-    from ..prepared import PreparedConfig
+    from ..prepared import PreparedConfig, _faiss_threads
 
     t0 = time.perf_counter()
     descs = [source.load(n).descriptors for n in pick]
@@ -136,12 +134,8 @@ def _train(source, pick, key):
                              for d in descs]).astype(np.float32)
     if len(sample) < nlist:
         return None, dict(used=False, why=f"{len(sample)} descriptors sampled, fewer than {nlist} cells")
-    threads = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)
-    try:
+    with _faiss_threads(1):
         q = train_quantizer(sample, nlist, seed=0, iters=ITERS)
-    finally:
-        faiss.omp_set_num_threads(threads)
     info = dict(used=True, nlist=nlist, images=len(pick), samples=int(len(sample)), token=q.token,
                 train_s=round(time.perf_counter() - t0, 3))
     try:
@@ -155,7 +149,11 @@ def _train(source, pick, key):
 def train_meanwhile(source, matcher, mode: str = "auto"):
     """Train the run's quantizer (:func:`collection_quantizer`) in a thread while the block runs -- a local cluster
     starting, whose worker processes the client only waits for -- and wait for it at the end; the run's own call
-    then finds it trained. An error is left for that call to raise (it is only a head start)."""
+    then finds it trained. An error is left for that call to raise (it is only a head start). ``"off"``: no thread."""
+    if mode == "off":
+        yield
+        return
+
     def work():
         with contextlib.suppress(Exception):
             collection_quantizer(source, matcher, mode)
