@@ -168,14 +168,14 @@ def test_expansion_rounds_draw_the_chained_then_tracked_keypoints_first(sequence
     calls = []
     real = engine.match_collection
 
-    def spy(source, pairs, sink, config=None, *, client=None, first=None):
+    def spy(source, pairs, sink, config=None, *, client=None, first=None, start_memos=None):
         pairs = [tuple(p) for p in pairs]
         want = None
         if first is not None:   # the graph before this round (its own pairs never tried yet)
             _, inliers, nkp = _read_inliers(sink)
             want = priors(pairs, inliers, nkp)
         calls.append((pairs, first, want))
-        return real(source, pairs, sink, config, client=client, first=first)
+        return real(source, pairs, sink, config, client=client, first=first, start_memos=start_memos)
 
     monkeypatch.setattr(engine, "match_collection", spy)
     db = tmp_path / "db.db"

@@ -26,7 +26,7 @@ _EXPORTS = {
     "MatchResult": "results", "MatchStats": "results", "ModelUpdate": "results", "Fallback": "results",
     "PhaseTimes": "results", "CandidateStats": "results", "Failure": "base",
     "match_bruteforce": "bruteforce",
-    "prepare": "prepared", "PreparedImage": "prepared", "PreparedConfig": "prepared",
+    "prepare": "prepared", "PreparedImage": "prepared", "PreparedConfig": "prepared", "StartMemo": "prepared",
     # estimators
     "estimate_fundamental": "epipolar",
     "fit_spatial_order": "spatial_order", "SpatialOrderConfig": "spatial_order",

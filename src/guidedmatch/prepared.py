@@ -274,7 +274,7 @@ class PreparedImage:
                                               kernels.num_threads())
             return self._cells[k]
 
-    def search2(self, queries: np.ndarray, byte_exact: bool = False, cells=None):
+    def search2(self, queries: np.ndarray, byte_exact: bool = False, cells=None, per_row: bool = False):
         """Approximate 2-NN of float ``queries (Q, D)`` in this image: ``(i1, s1, i2, s2, comparisons)``.
 
         The probed cells: the ``nprobe`` centroids nearest each query, exactly (the set of the GEMM's ``nprobe``
@@ -289,7 +289,8 @@ class PreparedImage:
         a few of them is not counted again). ``cells``: the queries' cells ``(Iq, Dq)`` in the shared quantizer
         (rows of :meth:`query_cells` of the queries' image) instead of the coarse step here. With a shared quantizer the
         coarse step is counted at this image's own-index ``nlist`` per query (what its own index would cost, the price
-        the unguided start's budget is set in), though the cells are computed once per image.
+        the unguided start's budget is set in), though the cells are computed once per image. ``per_row``:
+        ``comparisons`` as an ``(Q,) int64`` array, each query's share (their sum is the total).
         """
         index = self.index()
         if index is None:
@@ -312,7 +313,11 @@ class PreparedImage:
         # a shared quantizer's coarse step is charged at this image's own nlist: the unguided start's budget then buys
         # as many queries as with the image's own index (at the shared nlist a small image's budget bought fewer:
         # buddha's 2,365-feature image lost the first-pass pairs that let the second look register it)
-        comparisons = int(len(q)) * self._own_nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
+        if per_row:
+            comparisons = self._own_nlist + np.where(Iq >= 0, self._list_sizes[np.maximum(Iq, 0)], 0).sum(axis=1,
+                                                                                                       dtype=np.int64)
+        else:
+            comparisons = int(len(q)) * self._own_nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
         I = I.astype(np.int64)
         D = np.where(I >= 0, D, np.inf).astype(np.float32)
         if byte_exact and self.byte_exact:
@@ -402,6 +407,86 @@ def as_prepared(x, config: PreparedConfig | None = None) -> PreparedImage:
     return x if isinstance(x, PreparedImage) else prepare(x, config)
 
 
+class StartMemo:
+    """What the unguided start of one oriented pair found, per image-1 feature and search path ("gemm", "ivf",
+    "popcount"): the 2-NN ``(i1, s1, i2, s2)`` and the comparisons each query cost. Given to
+    :func:`guidedmatch.matcher.match` (``start_memo``) again for the same pair -- the same image 1, the same image 2
+    and its index -- the start takes the results of the features it holds instead of searching them: the matches are
+    bit-identical (a query's search result depends on the query and image 2 alone, :meth:`PreparedImage.search2`),
+    only the time changes. A collection's second look matches again pairs its first pass matched
+    (:mod:`guidedmatch.collection.second_look`), most of whose drawn features the first pass searched already.
+
+    Pickled compactly: only the features held, integers and distances narrowed where that is exact.
+    """
+
+    def __init__(self, n1: int, n2: int):
+        self.n1, self.n2 = int(n1), int(n2)
+        self.parts: dict = {}   # path -> [have (n1,) bool, i1, s1, i2, s2, comparisons (n1,)]
+        self._pending: list = []  # (path, queries, results) put since the last flush: a start that keeps no
+        # memo (most pairs) pays a list append per search, not the scatter
+
+    def fits(self, n1: int, n2: int) -> bool:
+        return self.n1 == int(n1) and self.n2 == int(n2)
+
+    def has(self, path: str, queries: np.ndarray) -> np.ndarray:
+        """Which ``queries`` the memo held when this start began (a start searches each feature once: what it put
+        itself is never asked again)."""
+        part = self.parts.get(path)
+        return np.zeros(len(queries), bool) if part is None else part[0][queries]
+
+    def put(self, path: str, queries: np.ndarray, *results) -> None:
+        self._pending.append((path, queries, results))
+
+    def get(self, path: str, queries: np.ndarray):
+        self._flush()
+        part = self.parts[path]
+        return tuple(a[queries] for a in part[1:])
+
+    def _flush(self) -> None:
+        for path, queries, results in self._pending:
+            part = self.parts.get(path)
+            if part is None:
+                part = self.parts[path] = [np.zeros(self.n1, bool)] + [np.zeros(self.n1, np.asarray(r).dtype)
+                                                                        for r in results]
+            part[0][queries] = True
+            for a, r in zip(part[1:], results):
+                a[queries] = r
+        self._pending.clear()
+
+    @property
+    def held(self) -> int:
+        """Features held, over the paths."""
+        self._flush()
+        return int(sum(int(p[0].sum()) for p in self.parts.values()))
+
+    def __getstate__(self):
+        self._flush()
+        parts = {}
+        for path, p in self.parts.items():
+            idx = np.flatnonzero(p[0])
+            parts[path] = (_narrow(idx), [(a.dtype.str, _narrow(a[idx])) for a in p[1:]])
+        return dict(n1=self.n1, n2=self.n2, parts=parts)
+
+    def __setstate__(self, state) -> None:
+        self.n1, self.n2, self.parts, self._pending = state["n1"], state["n2"], {}, []
+        for path, (idx, arrays) in state["parts"].items():
+            self.put(path, idx.astype(np.int64), *[a.astype(np.dtype(dt)) for dt, a in arrays])
+        self._flush()
+
+
+def _narrow(a: np.ndarray) -> np.ndarray:
+    """``a`` as int32 / float32 when that holds every value exactly (restored by ``astype`` of the original dtype),
+    else ``a``: a memo's indices, comparisons and integer-valued distances of byte descriptors."""
+    if a.dtype == np.int64 and (not len(a) or (int(a.min()) >= -2**31 and int(a.max()) < 2**31)):
+        return a.astype(np.int32)
+    if a.dtype == np.float64:
+        with np.errstate(over="ignore"):
+            b = a.astype(np.float32)
+        if np.array_equal(b.astype(np.float64), a, equal_nan=True):
+            return b
+    return a
+
+
 class UnguidedSearch:
     """2-NN of image-1 query batches over all of image 2 for the matcher's unguided start (a context manager).
 
@@ -416,10 +501,13 @@ class UnguidedSearch:
 
     KINDS = ("ivf", "gemm", "popcount")
 
-    def __init__(self, p1: PreparedImage, p2: PreparedImage, kind: str, exact_budget: float = 0.0):
+    def __init__(self, p1: PreparedImage, p2: PreparedImage, kind: str, exact_budget: float = 0.0,
+                 memo: "StartMemo | None" = None):
         if kind not in self.KINDS:
             raise ValueError(f"kind must be one of {self.KINDS}; got {kind!r}")
         self.p1, self.p2, self.kind = p1, p2, kind
+        self.memo = memo if memo is not None and memo.fits(len(p1), len(p2)) else None
+        self.memo_hits = 0
         self.exact_budget = float(exact_budget) if kind == "ivf" else 0.0
         self.exact_comparisons = 0
         self.ivf_queries = self.ivf_comparisons = 0
@@ -478,13 +566,42 @@ class UnguidedSearch:
             self._blas = None
 
     def query(self, queries: np.ndarray):
+        """``(i1, s1, i2, s2, comparisons)`` of the image-1 features ``queries``: exact (GEMM / popcount) while
+        :attr:`exact`, else the index. With a :class:`StartMemo` the queries it holds for this path are not searched
+        again (their results and comparisons are the memo's: the same as searching, every query's result depends
+        on the query and image 2 alone); the others are searched and added to it."""
         queries = np.asarray(queries, np.int64)
+        path = self.kind if self.kind != "ivf" else ("gemm" if self.exact else "ivf")
+        if self.memo is None:
+            i1, s1, i2, s2, rows = self._search(path, queries)
+        else:
+            have = self.memo.has(path, queries)
+            if not have.any():
+                i1, s1, i2, s2, rows = out = self._search(path, queries)
+                self.memo.put(path, queries, *out)
+            else:
+                if not have.all():
+                    new = queries[~have]
+                    self.memo.put(path, new, *self._search(path, new))
+                self.memo_hits += int(have.sum())
+                i1, s1, i2, s2, rows = self.memo.get(path, queries)
+        comparisons = int(rows.sum()) if isinstance(rows, np.ndarray) else int(rows)
+        if path == "ivf":
+            self.ivf_queries += len(queries)
+            self.ivf_comparisons += comparisons
+        elif path == "gemm":
+            self.exact_comparisons += comparisons
+        return i1, s1, i2, s2, comparisons
+
+    def _search(self, path: str, queries: np.ndarray):
+        """The search of ``queries`` on ``path`` ("popcount", "gemm" or "ivf"): ``(i1, s1, i2, s2, comparisons of
+        each query (Q,) int64)``."""
         n2 = len(self.p2)
-        if self.kind == "popcount":
+        per_query = np.full(len(queries), n2, np.int64)
+        if path == "popcount":
             i1, s1, i2, s2 = kernels.hamming_top2(self.p1.kdesc[queries], self.p2.kdesc)
-        elif self.exact:
+        elif path == "gemm":
             i1, s1, i2, s2 = self._dense.query(self.p1.descriptors[queries], byte_exact=self.p1.byte_exact)
-            self.exact_comparisons += len(queries) * n2
         else:
             if self.p2._index is None:
                 import time
@@ -497,8 +614,6 @@ class UnguidedSearch:
             if q1 is not None and q2 is not None and q1.token == q2.token:  # the collection's quantizer: image 1's
                 Iq, Dq = self.p1.query_cells(self.p2.nprobe)                 # cells, computed once for all its pairs
                 cells = (Iq[queries], Dq[queries])
-            out = self.p2.search2(self.p1.descriptors[queries], byte_exact=self.p1.byte_exact, cells=cells)
-            self.ivf_queries += len(queries)
-            self.ivf_comparisons += out[4]
-            return out
-        return i1, s1, i2, s2, len(queries) * n2
+            return self.p2.search2(self.p1.descriptors[queries], byte_exact=self.p1.byte_exact, cells=cells,
+                                   per_row=True)
+        return i1, s1, i2, s2, per_query

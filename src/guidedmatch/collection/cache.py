@@ -30,6 +30,14 @@ class _TaskSpec:
     cache_bytes: int
     single_thread: bool
     quantizer: Any = None  # the run's guidedmatch.collection.quantizer.SharedQuantizer, or None
+    cache_key: str = ""    # the process's image cache to use: "" -- the run's own (run_id); else one shared by the
+                           # stages of a SharedCluster that load the same images the same way (dask_backend)
+    memo_below: int = -1   # >= 0: pairs not verified or with fewer inliers return their start memo (memos.py)
+
+    @property
+    def cache_id(self) -> str:
+        """The key of this run's image cache in a process."""
+        return self.cache_key or self.run_id
 
 
 @dataclass

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+import uuid
 
 from ..errors import GuidedMatchError
 from .cache import _TaskSpec
@@ -60,8 +61,21 @@ class SharedCluster:
     def __init__(self, n_workers: int, reason: str):
         t0 = time.perf_counter()
         self.n_workers, self.reason = int(n_workers), f"{reason}; one cluster for every stage of the run"
+        self.cache_prefix = f"shared-{uuid.uuid4().hex[:12]}"
         self.cluster, self.client = _start_local_cluster(self.n_workers)
         self._startup_s = time.perf_counter() - t0
+        self._caches: dict = {}  # cache key -> the source it loads from (kept alive: its id is part of the key)
+
+    def cache_key(self, source, quantizer, cache_bytes: int) -> str:
+        """The key of the image cache that the stages loading ``source`` with ``quantizer`` (a SharedQuantizer or
+        None) share in each worker process: a later stage -- the expansion's or the second look's rounds -- finds the
+        images the first pass loaded and indexed (fox: 124 loads and k-means of the second look, ~3 s of the
+        workers' time). The same source object, the same quantizer token and memory bound give the same key; the
+        images themselves do not depend on the stage's matcher settings (:func:`guidedmatch.prepared.prepare`)."""
+        token = getattr(quantizer, "token", None) if quantizer is not None else None
+        key = f"{self.cache_prefix}-{id(source):x}-{token}-{int(cache_bytes)}"
+        self._caches.setdefault(key, source)
+        return key
 
     def take_startup(self) -> float:
         """The start-up time, once (the first stage reports it; 0 afterwards)."""
@@ -81,14 +95,15 @@ class SharedCluster:
 
 
 def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, tasks_per_worker: int,
-              firsts: dict | None = None) -> dict:
+              firsts: dict | None = None, memos=None) -> dict:
     """Run the queue on a Dask cluster; at most ``tasks_per_worker`` tasks per worker in flight.
 
     Locality without placement restrictions: each anchor image gets a tiny *token* task that loads it into a
     worker's cache; the anchor's pair tasks depend on the token, so Dask's scheduler runs them on the worker
     holding it (work stealing still balances an idle worker). If that worker dies, the token is recomputed
     elsewhere. (Hard ``workers=[...]`` restrictions were tried first: a finished task whose worker died before its
-    result was gathered was then never recomputed, and the run hung.)
+    result was gathered was then never recomputed, and the run hung.) ``memos``: the run's
+    :class:`~guidedmatch.collection.memos.StartMemos`, whose memos of a task's pairs go with the task.
     """
     from distributed import as_completed
 
@@ -96,6 +111,8 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
         return sorted(client.scheduler_info(n_workers=-1)["workers"])
 
     workers = live_workers()
+    # a cache shared with earlier stages (spec.cache_key): this stage's loads and hits are the counters' growth
+    before = _counters(client, spec.cache_id) if spec.cache_key else {}
     deadline = time.monotonic() + 60.0
     while not workers and time.monotonic() < deadline:  # an attached cluster may still be starting its workers
         time.sleep(0.5)
@@ -126,6 +143,7 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
                 deps = (tokens[anchor],)
             mine = {(a, b): firsts[(a, b)] for a, b in task if (a, b) in firsts} if firsts else None
             fut = client.submit(run_task, source, spec, task, *deps, pure=False, firsts=mine,
+                                memos=memos.for_task(task) if memos is not None else None,
                                 key=f"guidedmatch-pairs-{spec.run_id}-{seq}")
             inflight[fut] = (anchor, task, seq if not inflight else None)
             ac.add(fut)
@@ -169,12 +187,18 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
     finally:
         for fut in list(inflight) + list(tokens.values()):
             fut.cancel()
-    try:
-        counters = client.run(_cache_counters, spec.run_id)
-    except Exception:  # noqa: BLE001 - a worker restarting: the counters are only statistics
-        counters = {}
-    with contextlib.suppress(Exception):
-        client.run(_forget_run, spec.run_id)
-    hits = sum(c[0] for c in counters.values() if c)
-    loads = sum(c[1] for c in counters.values() if c)
+    counters = _counters(client, spec.cache_id)
+    if not spec.cache_key:  # the run's own cache; a shared one lives as long as the cluster's workers
+        with contextlib.suppress(Exception):
+            client.run(_forget_run, spec.run_id)
+    hits = sum(c[0] - (before.get(w) or (0, 0))[0] for w, c in counters.items() if c)
+    loads = sum(c[1] - (before.get(w) or (0, 0))[1] for w, c in counters.items() if c)
     return dict(cache_hits=hits, image_loads=loads, workers=len(seen_workers))
+
+
+def _counters(client, key: str) -> dict:
+    """``{worker: (hits, loads, load_s) or None}`` of the image cache ``key`` in each worker process."""
+    try:
+        return client.run(_cache_counters, key)
+    except Exception:  # noqa: BLE001 - a worker restarting: the counters are only statistics
+        return {}

@@ -194,7 +194,7 @@ def shared_cluster(source, pairs, sink, config: CollectionConfig | dict | None =
 
 
 def match_collection(source, pairs, sink, config: CollectionConfig | dict | None = None, *,
-                     client=None, first: dict | None = None) -> CollectionReport:
+                     client=None, first: dict | None = None, start_memos=None) -> CollectionReport:
     """Match every pair of ``pairs`` with features from ``source`` and write them into ``sink``.
 
     Args:
@@ -212,6 +212,9 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             :func:`guidedmatch.matcher.match`: image-1 feature indices drawn first, as the pair is oriented in
             ``pairs``), e.g. the chained keypoints of :mod:`~guidedmatch.collection.second_look`; sent with the task
             of the pair only.
+        start_memos: a :class:`~guidedmatch.collection.memos.StartMemos`: the memos it holds of these pairs go with
+            their tasks (the unguided starts do not search those features again), and while ``start_memos.recording``
+            the pairs left rejected or weak return theirs into it. The matches are the same with or without.
 
     Returns:
         :class:`CollectionReport`. Pairs that failed after their retries are listed in ``report.failed``;
@@ -288,7 +291,10 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             startup_s = client.take_startup() if shared else time.perf_counter() - t0
         quantizer, quantizer_info = (collection_quantizer(source, cfg.matcher, cfg.shared_quantizer) if todo
                                      else (None, dict(used=False, why="nothing to do")))
-        spec = dataclasses.replace(spec, quantizer=quantizer)
+        spec = dataclasses.replace(spec, quantizer=quantizer,
+                                   cache_key=client.cache_key(source, quantizer, spec.cache_bytes) if shared else "",
+                                   memo_below=start_memos.keep_below if start_memos is not None
+                                   and start_memos.recording else -1)
         log = open(cfg.log_path, "a", encoding="utf-8") if cfg.log_path else None  # noqa: SIM115 - closed below
         if cfg.progress:
             from tqdm.auto import tqdm
@@ -299,13 +305,15 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
             bar = _NoBar()
         if use is not None:
             bar.set_postfix_str(backend, refresh=False)
-        writer = _Writer(sink, cfg, queue, bar, log)
+        writer = _Writer(sink, cfg, queue, bar, log, start_memos)
         if backend == "in-process":
-            facts = _run_inprocess(source, spec, queue, writer, threads=cfg.threads or _usable_cores(), firsts=first)
+            facts = _run_inprocess(source, spec, queue, writer, threads=cfg.threads or _usable_cores(), firsts=first,
+                                   memos=start_memos)
         elif backend == "none":
             facts = dict(cache_hits=0, image_loads=0, workers=0)
         else:
-            facts = _run_dask(use, source, spec, queue, writer, cfg.tasks_per_worker, firsts=first)
+            facts = _run_dask(use, source, spec, queue, writer, cfg.tasks_per_worker, firsts=first,
+                              memos=start_memos)
     except BaseException:
         if log is not None:
             log.close()
@@ -337,6 +345,7 @@ def match_collection(source, pairs, sink, config: CollectionConfig | dict | None
                   max_tasks_in_flight=(cfg.tasks_per_worker * facts["workers"]) if backend != "in-process"
                   else (1 if facts.get("threads", 1) <= 1 else 2 * facts["threads"]),
                   cache_mb=cfg.cache_mb, prepared=_has_prepared(), quantizer=quantizer_info,
+                  start_memos=start_memos.summary() if start_memos is not None else None,
                   retried=sum(1 for k, v in writer.attempts.items() if v > 1))
     report = CollectionReport(writer.done, skipped, writer.failed, writer.per_pair, totals, wall)
     if log is not None:

@@ -276,11 +276,13 @@ def _save_state(path: Path | None, key: str, rounds: list) -> None:
 
 
 def match_collection_expanded(source, pairs, sink, config=None, expand: ExpansionConfig | dict | None = None, *,
-                              state_path: str | os.PathLike | None | bool = True, client=None) -> StagedReport:
+                              state_path: str | os.PathLike | None | bool = True, client=None,
+                              start_memos=None) -> StagedReport:
     """Match ``pairs`` (the shortlist), then the triangle-closing pairs in rounds (module doc).
 
     Args:
-        source, pairs, sink, config, client: as :func:`~guidedmatch.collection.engine.match_collection`; the
+        source, pairs, sink, config, client, start_memos: as
+            :func:`~guidedmatch.collection.engine.match_collection` (each stage given them); the
             sink must be a :class:`~guidedmatch.collection.sinks.ColmapSink` (the verified graph is read from its
             database). A :class:`~guidedmatch.collection.pairs.PairList` made by a retrieval spec contributes
             the retrieval stage (``pairs.report["retrieval"]``) to the report.
@@ -330,7 +332,7 @@ def match_collection_expanded(source, pairs, sink, config=None, expand: Expansio
             first = priors(todo, {p: m for p, m in inliers.items() if frozenset(p) not in own}, nkp)
             prior_pairs.extend(todo)
             extra = dict(extra, prior=True, prior_s=time.perf_counter() - t)
-        rep = match_collection(source, todo, sink, config, client=client, first=first)
+        rep = match_collection(source, todo, sink, config, client=client, first=first, start_memos=start_memos)
         if geometry == "colmap":
             sink.verify()  # COLMAP's verification of the pairs with matches and no geometry yet
         reports.append(rep)

@@ -16,18 +16,23 @@ from .writer import _Writer
 
 
 def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, threads: int = 1,
-                   firsts: dict | None = None) -> dict:
+                   firsts: dict | None = None, memos=None) -> dict:
     """The pairs in this process: one after the other (``threads=1``), or ``threads`` pairs at once on a thread pool
     (each pool thread runs Numba's kernels single-threaded, faiss runs single-threaded for the run; the image cache
     and the prepared images' index builds are locked). The caller's thread is the one writer either way, results
     are written in completion order, and the matches are the same as one after the other. ``firsts``: the prior
-    draw order of some pairs (:func:`~guidedmatch.collection.engine.match_collection`)."""
+    draw order of some pairs (:func:`~guidedmatch.collection.engine.match_collection`); ``memos``: the run's
+    :class:`~guidedmatch.collection.memos.StartMemos` (each pair's memo taken when the pair starts)."""
     cache = _ImageCache(source, spec)
     firsts = firsts or {}
+
+    def memo(a: str, b: str):
+        return memos.take((a, b)) if memos is not None else None
+
     if threads <= 1:
         while queue:
             anchor, task = queue.take()
-            outs = [_match_one(cache, a, b, spec, "in-process", firsts.get((a, b))) for a, b in task]
+            outs = [_match_one(cache, a, b, spec, "in-process", firsts.get((a, b)), memo(a, b)) for a, b in task]
             queue.finished(anchor)
             for out in outs:
                 writer.handle(out)
@@ -39,9 +44,9 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
     from .. import kernels
     from ..prepared import _faiss_threads
 
-    def one(a: str, b: str) -> PairOutcome:
+    def one(a: str, b: str, m) -> PairOutcome:
         kernels.limit_threads_here(1)  # this pool thread's kernel calls stay in it: the concurrency is across pairs
-        return _match_one(cache, a, b, spec, "in-process", firsts.get((a, b)))
+        return _match_one(cache, a, b, spec, "in-process", firsts.get((a, b)), m)
 
     pending: collections.deque = collections.deque()  # (anchor, remaining pairs of its task)
     inflight: dict = {}
@@ -71,7 +76,7 @@ def _run_inprocess(source, spec: _TaskSpec, queue: _Queue, writer: _Writer, thre
                 a, b = entry[1].popleft()
                 if not entry[1]:
                     pending.popleft()
-                inflight[pool.submit(one, a, b)] = (entry, a, b)
+                inflight[pool.submit(one, a, b, memo(a, b))] = (entry, a, b)
 
         try:
             fill()

@@ -5,6 +5,7 @@ from the worker that matched it to the writer).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -74,7 +75,8 @@ class PairOutcome:
     """One pair's result as it travels from a worker to the writer.
 
     ``pairs (M, 2) int64`` / ``scores (M,) float32`` (the matcher's descriptor distances) and ``geometry`` are set
-    when ``ok``; ``reason`` says why not otherwise. ``stats`` is the JSON-ready per-pair record.
+    when ``ok``; ``reason`` says why not otherwise. ``stats`` is the JSON-ready per-pair record. ``memo``: the pair's
+    :class:`~guidedmatch.prepared.StartMemo` when the run keeps them (:mod:`guidedmatch.collection.memos`).
     """
 
     name1: str
@@ -85,6 +87,7 @@ class PairOutcome:
     scores: np.ndarray | None = None
     geometry: TwoViewGeometry | None = None
     stats: dict = field(default_factory=dict)
+    memo: Any = None
 
 
 def _workers_text(t: dict) -> str:

@@ -82,6 +82,8 @@ class SecondLookConfig:
     orphan_pairs: int = 5          # an image with no verified pair: its most similar images (retrieval words) matched
                                    # again first, the orphan as image 1 (0: off); buddha 00065 at OpenCV SIFT: 2 of 5
     orphan_unguided: float = 0.1   # those pairs' unguided budget (fraction of N1*N2): a chain-less pair has no prior
+    start_memo_mb: float = 512.0   # memory for the first pass's searches of the pairs looked at again (memos.py;
+                                   # the same matches, found faster; 0: off); fox: ~100 MB
 
     def __post_init__(self) -> None:
         own = "SecondLookConfig"
@@ -93,6 +95,7 @@ class SecondLookConfig:
         check_number(own, "max_pairs_per_round", self.max_pairs_per_round, lo=1, integer=True)
         check_number(own, "orphan_pairs", self.orphan_pairs, lo=0, integer=True)
         check_number(own, "orphan_unguided", self.orphan_unguided, lo=0, hi=1, lo_open=True)
+        check_number(own, "start_memo_mb", self.start_memo_mb, lo=0)
 
 
 # ------------------------------------------------------------------------------------------------ the chains
@@ -331,7 +334,7 @@ def _chain_round(tried: set, inliers: dict, nkp: dict, looked: set, cfg: SecondL
 
 
 def second_look(source, sink, config=None, look: SecondLookConfig | dict | None = None, *,
-                state_path: str | os.PathLike | None | bool = True, client=None, looked=()) -> dict:
+                state_path: str | os.PathLike | None | bool = True, client=None, looked=(), start_memos=None) -> dict:
     """Match the images without a verified pair against their most similar images with a longer start (the orphan
     round), then the weak pairs and the rejected pairs with enough chained correspondences again, with a prior (and
     ``max_unguided`` when set), in rounds (module doc). ``sink``: an open
@@ -340,7 +343,9 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
     the stage record: ``rounds`` (per round: kind, candidates, pairs, verified, time_s), ``verified`` (pairs the
     second look verified), ``orphans`` (images without a verified pair before it, and how many of them have one
     after), ``stopped`` (why), ``time_s``, ``state``. ``looked``: pairs already matched with the prior (the verified
-    expansion's, :class:`~guidedmatch.collection.expansion.ExpansionConfig` ``prior``): never candidates here."""
+    expansion's, :class:`~guidedmatch.collection.expansion.ExpansionConfig` ``prior``): never candidates here.
+    ``start_memos``: the :class:`~guidedmatch.collection.memos.StartMemos` the first pass recorded into (the same
+    matches, faster); the second look only takes from it (its ``recording`` is switched off)."""
     from .config import CollectionConfig
     from .engine import match_collection
 
@@ -409,8 +414,10 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         if cfg.prior and not orphan:  # from the graph without this round's own pairs: a replay after a crash finds
             own = {frozenset(p) for p in pairs}  # the same priors
             first = priors(pairs, {p: m for p, m in inliers.items() if frozenset(p) not in own}, nkp)
+        if start_memos is not None:
+            start_memos.recording = False  # the last stage: nothing will match these pairs again
         rep = match_collection(source, pairs, _Again(sink, pairs), oconf if orphan else cconf, client=client,
-                               first=first)
+                               first=first, start_memos=start_memos)
         tried, inliers, nkp = _read_inliers(sink)
         after = {frozenset(p): len(m) for p, m in inliers.items()}
         mine = [frozenset(p) for p in pairs]
@@ -420,7 +427,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         record.append(dict(round=k, kind=r.get("kind", "chains"), candidates=r.get("candidates"), pairs=len(pairs),
                            verified=new, inliers_gained=gained, failed=len(rep.failed),
                            chain_s=r.get("chain_s", 0.0), time_s=time.perf_counter() - t1, stale=stale,
-                           backend=rep.totals.get("backend"), startup_s=rep.totals.get("startup_s", 0.0)))
+                           backend=rep.totals.get("backend"), startup_s=rep.totals.get("startup_s", 0.0),
+                           image_loads=rep.totals.get("image_loads", 0)))
         if new == 0 and not orphan:
             stopped = "a round verified no new pair"
         _save(state, key, rounds, stopped)
@@ -436,7 +444,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
                              verified=sum(r.get("verified", 0) for r in orphan_rounds),
                              max_unguided=oconf.matcher.max_unguided),
                 max_unguided=budget, min_chained=cfg.min_chained, time_s=time.perf_counter() - t0,
-                state=str(state) if state else None)
+                state=str(state) if state else None,
+                start_memos=start_memos.summary() if start_memos is not None else None)
 
 
 def describe(record: dict) -> str:

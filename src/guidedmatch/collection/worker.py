@@ -27,21 +27,23 @@ _RUNS_LOCK = threading.Lock()
 
 
 def _worker_cache(source, spec: _TaskSpec) -> _ImageCache:
-    """The image cache of run ``spec.run_id`` in this worker process (created, with the source, on first use)."""
+    """The image cache of run ``spec`` in this worker process (created, with the source, on first use): the run's own,
+    or the one the stages of a shared cluster share (``spec.cache_key``)."""
     with _RUNS_LOCK:
-        cache = _RUNS.get(spec.run_id)
+        cache = _RUNS.get(spec.cache_id)
         if cache is None:
             if spec.single_thread:
                 _limit_threads()
                 freeze_gc_at_exit()  # a worker process of ours: its shutdown is part of the run's wall time
                 mark_own_process()
                 _load_numba()        # Numba's set-up without SciPy (guidedmatch._runtime), before the first pair
-            cache = _RUNS[spec.run_id] = _ImageCache(source, spec)
+            cache = _RUNS[spec.cache_id] = _ImageCache(source, spec)
         return cache
 
 
 def _forget_run(run_id: str) -> bool:
-    """Drop a run's cache in this process (called on every worker at the end of a run)."""
+    """Drop a run's cache in this process (called on every worker at the end of a run; a cache the stages of a
+    shared cluster share lives as long as the cluster's workers)."""
     with _RUNS_LOCK:
         cache = _RUNS.pop(run_id, None)
     if cache is not None:
@@ -102,9 +104,12 @@ def _fallback_text(f) -> str:
     return f"{f.what}{f' (model update {at})' if at else ''}: {f.reason}"
 
 
-def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str, first=None) -> PairOutcome:
-    """Match one pair (``first``: the matcher's prior draw order for it, :func:`guidedmatch.matcher.match`); any
-    error is the pair's outcome, never raised."""
+def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str, first=None,
+               memo=None) -> PairOutcome:
+    """Match one pair (``first``: the matcher's prior draw order for it, :func:`guidedmatch.matcher.match`;
+    ``memo``: a :class:`~guidedmatch.prepared.StartMemo` of it from an earlier stage); any error is the pair's
+    outcome, never raised. With ``spec.memo_below >= 0`` the outcome carries the pair's start memo when its verdict
+    is not "verified" or it has fewer inliers (a pair the second look may match again)."""
     from ..matcher import match
 
     t0 = time.perf_counter()
@@ -113,7 +118,16 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str,
         A = cache.get(a, (a, b))
         B = cache.get(b, (a, b))
         t1 = time.perf_counter()
-        res = match(A.prepared, B.prepared, spec.mode, spec.matcher, first=first)
+        given = memo is not None
+        if given:
+            from .memos import load
+
+            memo = load(memo)
+        elif spec.memo_below >= 0:  # record this pair's start for a later stage
+            from ..prepared import StartMemo
+
+            memo = StartMemo(len(A.features), len(B.features))
+        res = match(A.prepared, B.prepared, spec.mode, spec.matcher, first=first, start_memo=memo)
         t2 = time.perf_counter()
         geom = res.geometry
     except Exception as exc:  # noqa: BLE001 - reported per pair, retried by the client, never silently lost
@@ -124,17 +138,27 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str,
                  inliers=int(geom.num_inliers), comparisons=getattr(st, "comparisons", None),
                  fallbacks=[_fallback_text(f) for f in getattr(st, "fallbacks", ())],
                  load_s=t1 - t0, match_s=t2 - t1, worker=worker, t_start=wall0, t_end=wall0 + (t2 - t0))
-    return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats)
+    if given:
+        stats["start_memo_hits"] = int(st.details.get("start_memo_hits", 0))
+    keep = (memo is not None and not given and spec.memo_below >= 0 and memo.held
+            and (geom.verdict != "verified" or int(geom.num_inliers) < spec.memo_below))
+    if keep:
+        from .memos import dump
+
+        memo = dump(memo)
+    return PairOutcome(a, b, True, "", res.pairs, res.distances, geom, stats, memo=memo if keep else None)
 
 
-def run_task(source, spec: _TaskSpec, pairs: list, *anchor_token, firsts: dict | None = None) -> list[PairOutcome]:
+def run_task(source, spec: _TaskSpec, pairs: list, *anchor_token, firsts: dict | None = None,
+             memos: dict | None = None) -> list[PairOutcome]:
     """A task: match ``pairs`` (list of ``(name1, name2)``) with the run's image cache of this process
     (``anchor_token``: the result of :func:`_anchor_token`, only there to place the task; ``firsts``: the prior draw
-    order of some of the pairs, ``{(name1, name2): first}``, sent with the task that needs it)."""
+    order of some of the pairs, ``{(name1, name2): first}``, sent with the task that needs it; ``memos``: their
+    start memos from an earlier stage, likewise)."""
     cache = _worker_cache(source, spec)
     worker = _worker_name()
-    firsts = firsts or {}
-    return [_match_one(cache, a, b, spec, worker, firsts.get((a, b))) for a, b in pairs]
+    firsts, memos = firsts or {}, memos or {}
+    return [_match_one(cache, a, b, spec, worker, firsts.get((a, b)), memos.get((a, b))) for a, b in pairs]
 
 
 def _anchor_token(source, spec: _TaskSpec, anchor: str) -> str:

@@ -15,8 +15,9 @@ from .report import PairOutcome, _json_default
 class _Writer:
     """The one writer: sink writes, retries, the failed list, per-pair log lines, progress and totals."""
 
-    def __init__(self, sink, cfg: CollectionConfig, queue: _Queue, bar, log):
+    def __init__(self, sink, cfg: CollectionConfig, queue: _Queue, bar, log, memos=None):
         self.sink, self.cfg, self.queue, self.bar, self.log = sink, cfg, queue, bar, log
+        self.memos = memos  # the run's StartMemos (memos.py): returned memos kept, memo hits counted
         self.attempts: collections.Counter = collections.Counter()
         self.errors: dict[frozenset, list] = {}
         self.done = 0
@@ -56,6 +57,10 @@ class _Writer:
         for k in ("load_s", "match_s"):
             self.sums[k] += st[k]
         self.verdicts[st["verdict"]] += 1
+        if self.memos is not None:
+            self.memos.hits += st.get("start_memo_hits", 0)
+            if out.memo is not None:
+                self.memos.add((out.name1, out.name2), out.memo)
         self._record(out, dict(status="done"))
 
     def _record(self, out: PairOutcome, extra: dict) -> None:

@@ -28,7 +28,7 @@ from .state import _Accepted, _Collected, _frames
 
 # ====================================================================================================== entry point
 def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *, return_models: bool = False,
-          first=None):
+          first=None, start_memo=None):
     """Match image-1 features to image-2 features with ``mode`` (the package's one matching entry point).
 
     Args:
@@ -43,6 +43,10 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
             them (tiers, earliest first). Each tier is drawn before the rest, in the same round-robin draw order
             (step 1); nothing else changes -- every drawn feature is still matched against all of image 2 and the
             verdict decides on its own matches. None (default): the paper's draw order. Ignored by ``bf``.
+        start_memo: a :class:`~guidedmatch.prepared.StartMemo` of this pair (the same images, the same image-2
+            index): the unguided start takes the results it holds instead of searching those features again, and
+            adds the features it searches (the matches are the same with or without it; ``stats.details
+            ["start_memo_hits"]`` counts the features taken). A memo of other images' sizes is ignored.
 
     Returns:
         :class:`~guidedmatch.results.MatchResult`: ``pairs (M,2) int64`` sorted by image-1 index, ``distances (M,)
@@ -78,7 +82,8 @@ def match(features1, features2, mode: "str | Mode" = "so+epi+ia", config=None, *
     with compile_monitor() as jit:  # a first call compiles Numba kernels: reported apart from time_s
         why = _bf_wins(config, len(d1), len(d2), binary) if mode.guided else None
         run = None if not mode.guided or why else _GuidedRun(config, mode, p1 or prepare(f1), p2 or prepare(f2),
-                                                             d1, d2, binary, first=tiers)
+                                                             d1, d2, binary, first=tiers,
+                                                             start_memo=start_memo)
         res = _match_bf(config, f1, f2, d1, d2, binary, mode, why) if run is None else run.run()
     res = exclude_compile_time(res, jit.seconds)
     return (res, run.guidance if run is not None else None) if return_models else res
@@ -178,9 +183,12 @@ def _kept(keep: np.ndarray, q, j, d, flags: dict, geometry):
 class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
     """State of one guided match (not public); :meth:`run` is the method in order."""
 
-    def __init__(self, config: MatcherConfig, mode: Mode, p1, p2, d1, d2, binary, first: tuple = ()):
+    def __init__(self, config: MatcherConfig, mode: Mode, p1, p2, d1, d2, binary, first: tuple = (),
+                 start_memo=None):
         self.c = config
         self.first = first  # tiers of image-1 features drawn before the rest (match(first=...))
+        self.start_memo = start_memo  # StartMemo of this pair: searched features not searched again
+        self.start_memo_hits = 0
         self.mode = mode
         self.p1, self.p2 = p1, p2  # guidedmatch.prepared.PreparedImage of each side
         self.f1, self.f2 = p1.features, p2.features
@@ -379,6 +387,6 @@ class _GuidedRun(UnguidedStart, ModelFits, GuidedPass, Filters):
             details=dict(unguided_search=self.unguided_search, verdict_checks=tuple(self.checks),
                          early_exit=self.early_exit, unguided_comparisons=int(self.unguided_comparisons),
                          dropped_unverified=dropped_unverified, dropped_off_homography=dropped_planar,
-                         dropped_off_frame=dropped_frames))
+                         dropped_off_frame=dropped_frames, start_memo_hits=self.start_memo_hits))
         pairs = np.stack([q, j], axis=1) if len(q) else empty_pairs()
         return MatchResult(pairs, d, stats, flags, geometry)

@@ -128,7 +128,7 @@ class UnguidedStart:
         total = ptr = 0
         next_check = max(c.first_check, c.min_model_matches)
         checked_at = -1
-        with UnguidedSearch(self.p1, self.p2, kind, exact_budget=rent) as search:
+        with UnguidedSearch(self.p1, self.p2, kind, exact_budget=rent, memo=self.start_memo) as search:
             while ptr < len(order):
                 if search.exact:
                     n = c.batch_size
@@ -181,6 +181,7 @@ class UnguidedStart:
             self.timing["index_build_s"] += search.index_build_s
             self.timing["initial_bf_s"] -= search.index_build_s
             self.unguided_search = search.used
+            self.start_memo_hits = search.memo_hits
         if models is None:
             if checked_at != total or self.decision is None:
                 self.decide(got)  # the verdict on all the evidence there is

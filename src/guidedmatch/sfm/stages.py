@@ -26,6 +26,7 @@ import numpy as np
 
 from ..collection.sink_base import open_pycolmap_database
 from ..errors import DatabaseError, OutputError
+from ..validation import config_from
 from .config import COLMAP_MAX_IMAGE_SIZE, VERIFIED_CONFIGS, SfmConfig, SfmPaths, parse_camera, resolve_mapper, say
 
 __all__ = ["check_output", "extract_main", "match_main", "match_into_database", "map_main", "run_mapping", "reconstruction_stats",
@@ -326,21 +327,30 @@ def match_into_database(source, pairs, database: str | os.PathLike, cconf, *, ge
 
     t0 = time.perf_counter()
     verified, t_verify, cap, tight = None, 0.0, None, None
+    memos = None
+    if second_look is not None and geometry == "ours":
+        from ..collection.memos import StartMemos
+        from ..collection.second_look import SecondLookConfig
+
+        lcfg = config_from(SecondLookConfig, second_look)
+        if lcfg.start_memo_mb > 0 and lcfg.max_rounds > 0:  # the first pass's searches of the pairs looked at again
+            memos = StartMemos(lcfg.weak_below, lcfg.start_memo_mb)
     with ColmapSink(database, geometry=geometry) as sink:
         # one local cluster (when the first pass needs one) for the first pass, the expansion and the second look
         with shared_cluster(source, pairs, sink, cconf) as client:
             if expand is not None:
                 from ..collection.expansion import match_collection_expanded
 
-                report = match_collection_expanded(source, pairs, sink, cconf, expand, client=client)
+                report = match_collection_expanded(source, pairs, sink, cconf, expand, client=client,
+                                                   start_memos=memos)
             else:
-                report = match_collection(source, pairs, sink, cconf, client=client)
+                report = match_collection(source, pairs, sink, cconf, client=client, start_memos=memos)
             look = None
             if second_look is not None and geometry == "ours":
                 from ..collection.second_look import second_look as run_second_look
 
                 look = run_second_look(source, sink, cconf, second_look, looked=getattr(report, "prior_pairs", ()),
-                                       client=client)
+                                       client=client, start_memos=memos)
         t_match = time.perf_counter() - t0
         if geometry == "colmap":
             t1 = time.perf_counter()
