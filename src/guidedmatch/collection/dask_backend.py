@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import threading
 import time
 import uuid
 
@@ -14,7 +15,7 @@ from ..errors import GuidedMatchError
 from .cache import _TaskSpec
 from .planning import _Queue
 from .report import PairOutcome
-from .worker import _anchor_token, _cache_counters, _forget_run, run_task
+from .worker import _anchor_token, _cache_counters, _forget_run, _load_numba, run_task
 from .writer import _Writer
 
 
@@ -171,6 +172,8 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
                 workers = live_workers()
                 seen_workers.update(workers)
             fill()
+            if spec.cache_key and not queue:  # a shared cluster's stage: later stages come, see _warm_numba_here
+                _warm_numba_here()
             if not inflight and queue:  # every worker gone: wait a little for replacements, then give up
                 for _ in range(40):
                     workers = live_workers()
@@ -194,6 +197,25 @@ def _run_dask(client, source, spec: _TaskSpec, queue: _Queue, writer: _Writer, t
     hits = sum(c[0] - (before.get(w) or (0, 0))[0] for w, c in counters.items() if c)
     loads = sum(c[1] - (before.get(w) or (0, 0))[1] for w, c in counters.items() if c)
     return dict(cache_hits=hits, image_loads=loads, workers=len(seen_workers))
+
+
+_WARMED = threading.Event()
+
+
+def _warm_numba_here() -> None:
+    """Set Numba up in this process (the client's) in a thread, once, while a stage's last tasks run: the stages after
+    the first pass use compiled kernels here -- the second look's chains (:func:`~guidedmatch.strip_index.sorted_join`),
+    the 1.5 px selection's angles -- and the first of them pays Numba's start (0.3-0.5 s holding this process; fox:
+    ~1 s of wall time between the first pass and the second look, both workers idle) unless it is done by then."""
+    if _WARMED.is_set():
+        return
+    _WARMED.set()
+
+    def warm() -> None:
+        with contextlib.suppress(Exception):  # only a head start: a failure shows where the kernel is used
+            _load_numba()
+
+    threading.Thread(target=warm, name="guidedmatch-numba-warm", daemon=True).start()
 
 
 def _counters(client, key: str) -> dict:
