@@ -313,11 +313,8 @@ class PreparedImage:
         # a shared quantizer's coarse step is charged at this image's own nlist: the unguided start's budget then buys
         # as many queries as with the image's own index (at the shared nlist a small image's budget bought fewer:
         # buddha's 2,365-feature image lost the first-pass pairs that let the second look register it)
-        if per_row:
-            comparisons = self._own_nlist + np.where(Iq >= 0, self._list_sizes[np.maximum(Iq, 0)], 0).sum(axis=1,
-                                                                                                       dtype=np.int64)
-        else:
-            comparisons = int(len(q)) * self._own_nlist + int(self._list_sizes[Iq[Iq >= 0]].sum())
+        rows = self._own_nlist + np.where(Iq >= 0, self._list_sizes[np.maximum(Iq, 0)], 0).sum(axis=1, dtype=np.int64)
+        comparisons = rows if per_row else int(rows.sum())
         I = I.astype(np.int64)
         D = np.where(I >= 0, D, np.inf).astype(np.float32)
         if byte_exact and self.byte_exact:

@@ -83,7 +83,7 @@ class SecondLookConfig:
                                    # again first, the orphan as image 1 (0: off); buddha 00065 at OpenCV SIFT: 2 of 5
     orphan_unguided: float = 0.1   # those pairs' unguided budget (fraction of N1*N2): a chain-less pair has no prior
     start_memo_mb: float = 512.0   # memory for the first pass's searches of the pairs looked at again (memos.py;
-                                   # the same matches, found faster; 0: off); fox: ~100 MB
+                                   # the same matches, found faster; 0: off); fox: 46 MB
 
     def __post_init__(self) -> None:
         own = "SecondLookConfig"
@@ -368,6 +368,8 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
     if saved.get("key") != key:
         saved = {}
     rounds = list(saved.get("rounds", []))
+    if start_memos is not None:
+        start_memos.recording = False  # the last stage: nothing will match its pairs again, it only takes memos
     stopped = saved.get("stopped")
     looked = {frozenset(p) for r in rounds for p in r["pairs"]} | skip
     orphans_before = None
@@ -414,8 +416,6 @@ def second_look(source, sink, config=None, look: SecondLookConfig | dict | None 
         if cfg.prior and not orphan:  # from the graph without this round's own pairs: a replay after a crash finds
             own = {frozenset(p) for p in pairs}  # the same priors
             first = priors(pairs, {p: m for p, m in inliers.items() if frozenset(p) not in own}, nkp)
-        if start_memos is not None:
-            start_memos.recording = False  # the last stage: nothing will match these pairs again
         rep = match_collection(source, pairs, _Again(sink, pairs), oconf if orphan else cconf, client=client,
                                first=first, start_memos=start_memos)
         tried, inliers, nkp = _read_inliers(sink)

@@ -140,8 +140,9 @@ def _match_one(cache: _ImageCache, a: str, b: str, spec: _TaskSpec, worker: str,
                  load_s=t1 - t0, match_s=t2 - t1, worker=worker, t_start=wall0, t_end=wall0 + (t2 - t0))
     if given:
         stats["start_memo_hits"] = int(st.details.get("start_memo_hits", 0))
-    keep = (memo is not None and not given and spec.memo_below >= 0 and memo.held
-            and (geom.verdict != "verified" or int(geom.num_inliers) < spec.memo_below))
+    # the verdict first: held() assembles the memo, which only the pairs that keep it should pay for
+    keep = (not given and memo is not None
+            and (geom.verdict != "verified" or int(geom.num_inliers) < spec.memo_below) and memo.held)
     if keep:
         from .memos import dump
 
