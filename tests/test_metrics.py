@@ -103,6 +103,12 @@ def test_run_metadata_keys():
     assert m["seed"] == 11 and m["numpy"] == np.__version__ and m["logical_cores"] == os.cpu_count()
     assert m["timestamp_utc"].endswith("+00:00")
     assert set(m["faiss_blas"]) == {"core", "pinned", "why", "generic"}  # which kernels faiss's OpenBLAS ran
+    # the widest SIMD extension, from the same flags the OpenBLAS pin reads (the time ratios depend on it)
+    from guidedmatch._runtime import _cpu_flags
+    from guidedmatch.evaluation.meta import cpu_vector
+
+    assert m["cpu_vector"] == cpu_vector(_cpu_flags())
+    assert m["cpu_vector"] in (None, "AVX-512", "AVX2", "AVX", "SSE4.2")
     json.dumps(m)  # plain JSON types only
 
 

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from ..config import MODES as OURS  # our modes, in the one order every table uses
+from .meta import cpu_label
+
 PAPER_MODES = {"bf": "BF", "so": "SO", "so+epi": "SO+EPI", "so+epi+ia": "SO+EPI+IA"}
 LABEL = {"bf": "BF", "bf-1nn": "BF 1-NN (no ratio)", "epi": "EPI", "so": "SO", "so+epi": "SO+EPI",
          "so+epi+ia": "SO+EPI+IA", "opencv_bf": "OpenCV BF", "opencv_flann": "OpenCV FLANN", "faiss_flat": "faiss exact",
@@ -334,7 +336,7 @@ def write_report(out: Path, results: dict, command: str) -> Path:
     meta = results["meta"]
     md = ["# guidedmatch benchmark report\n",
           f"Command: `{command}`  \nGenerated: {meta.get('timestamp_utc', '')}, commit `{meta.get('git_commit', '?')}`"
-          f"{' (dirty)' if meta.get('git_dirty') else ''}, {meta.get('cpu_model', '?')}, {meta.get('logical_cores', '?')} logical cores, "
+          f"{' (dirty)' if meta.get('git_dirty') else ''}, {cpu_label(meta)}, {meta.get('logical_cores', '?')} logical cores, "
           f"run time {results.get('elapsed_s', 0) / 60:.1f} min{' (--quick)' if results.get('quick') else ''}.\n",
           "Detector: OpenCV SIFT (the paper used SURF, which is not in the pip OpenCV builds: it is patented and excluded). "
           "All methods of a pair share the same features. Ratio test 0.8 everywhere (ours inside the candidate set); "

@@ -45,7 +45,7 @@ import numpy as np
 
 from .accuracy_scenes import SCENES, copy_database, distortion, reference_cameras, scene_paths
 from .consistency import EPI_WRONG_PX, epipolar_distances, pair_table, undistort
-from .meta import default_cache
+from .meta import cpu_label, default_cache
 from .poses import (CameraPose, aligned_centre_errors, error_by_sequence_distance, evaluate_poses,
                     poses_from_reconstruction)
 
@@ -559,7 +559,7 @@ def run(root: Path, out: Path, scenes, methods=BASE_METHODS, seeds=SEEDS, thread
         _write_json(out / "accuracy.json", res)
         md = ["# Pose accuracy per scene: COLMAP's matcher vs guidedmatch in COLMAP's mapper", "",
               f"`{command}` -- {res['meta'].get('timestamp_utc')}, commit `{(res['meta'].get('git_commit') or '')[:10]}`, "
-              f"{res['meta'].get('cpu_model')}, {threads} threads; load average at each timed stage in accuracy.json "
+              f"{cpu_label(res['meta'])}, {threads} threads; load average at each timed stage in accuracy.json "
               "(2 shared cores: compare times within a scene).", "",
               "Same pycolmap SIFT features (COLMAP defaults, 8192) for every method of a scene, same mapper "
               "(pycolmap.incremental_mapping), median over the mapper seeds (0, 1, 2, ...; how many in the seeds column) "

@@ -35,6 +35,8 @@ import sys
 import time
 from pathlib import Path
 
+from .meta import cpu_label
+
 DATA_REL = "pose_pairs/strecha/Herz-Jesus-P8/images"
 FEATURE_SETS = {
     "default": dict(),  # COLMAP's defaults: max_num_features 8192, peak_threshold 0.00667
@@ -365,7 +367,7 @@ def run(image_dir: Path, out_dir: Path, work: Path, sets=("default", "50k"), sca
 
 def markdown(result: dict) -> str:
     lines = ["# Collection matching: `guidedmatch colmap` vs `pycolmap.match_exhaustive` (Herz-Jesus-P8, 28 pairs)", "",
-             f"CPU: {result['meta'].get('cpu_model')}, {result['meta'].get('usable_cores')} usable cores; COLMAP "
+             f"CPU: {cpu_label(result['meta'])}, {result['meta'].get('usable_cores')} usable cores; COLMAP "
              f"{THREADS} threads. {result['note']}. Wall times of fresh processes (imports, cluster start/stop "
              "included). Verified inliers: sum of the inlier matches of all two-view geometries in the database. "
              "Numba's on-disk cache was warmed first (one pair, untimed: "

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .meta import cpu_label
+
 #: Extraction options: name -> ExtractionConfig fields (``colmap`` = the pycolmap peer pipeline's extraction).
 OPTIONS = {
     "colmap": {"extractor": "pycolmap"},
@@ -293,7 +295,7 @@ def write_report(res: dict, out: Path) -> None:
     loads = ", ".join(f"{x:.1f}" for x in res["load_before_round"])
     md = ["# Extraction options and mappers (Herz-Jesus-P8 / P25, GT poses)", "",
           f"`{res['command']}` -- {meta.get('timestamp_utc')}, commit `{(meta.get('git_commit') or '')[:10]}`, "
-          f"{meta.get('cpu_model')}, {meta.get('logical_cores')} logical cores. 1-minute load average before each "
+          f"{cpu_label(meta)}, {meta.get('logical_cores')} logical cores. 1-minute load average before each "
           f"round: {loads} (other jobs shared the machine: compare rows within a round / by their ratio to the "
           "colmap row; CPU seconds are less sensitive to the load than wall seconds).", "",
           "Each stage a fresh process from an empty folder; our rows hand the mapper at most "

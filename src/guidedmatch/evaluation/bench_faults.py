@@ -36,6 +36,7 @@ import numpy as np
 
 from .faults_common import (Row, Run, SmallFS, compare_db, db_state, fill, make_collection, parse_skipped,
                             partial_rows, reordered_pairs, run_and_kill, run_cli, table_markdown)
+from .meta import cpu_label
 
 SFM_STAGES = (("extraction", "[1/3]"), ("matching", "[2/3]"), ("mapping", "[3/3]"))
 SFM_END = "done in"
@@ -590,7 +591,7 @@ def main(args) -> int:
               "`guidedmatch.evaluation.bench_faults` for the exact checks per class).", "",
               table_markdown(all_rows), "",
               f"Run: {wall / 60:.1f} min{'' if final else ' (in progress)'}, commit {meta.get('git_commit')}"
-              f"{' (dirty)' if meta.get('git_dirty') else ''}, {meta.get('cpu_model')}, load average "
+              f"{' (dirty)' if meta.get('git_dirty') else ''}, {cpu_label(meta)}, load average "
               f"{meta.get('load_average'):.2f} at the start, {meta['load_average_end']:.2f} at the end "
               f"(other jobs shared the 2 cores); seed {seed}."
               + (f" Rows of {len(meta['merged_runs'])} earlier run(s) kept (--merge-faults; their metadata in "

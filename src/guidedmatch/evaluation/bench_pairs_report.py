@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .bench_pairs_data import OURS, SCENE, _field
+from .meta import cpu_label
 
 #: Report columns: ``faiss_ivf+build`` is the IVF run with the index builds amortized over the image's pairs,
 #: ``so+epi+ia+prep`` ours with its per-image preparation (descriptor forms + its own IVF index) amortized the same way.
@@ -199,7 +200,7 @@ def write_report(out: Path, res: dict, command: str) -> Path:
     meta = res["meta"]
     md = [f"# Pairs benchmark: {SCENE}, all pairs + unrelated pairs", "",
           f"`{command}` -- commit `{str(meta.get('git_commit'))[:10]}`{' + local changes' if meta.get('git_dirty') else ''}, "
-          f"{str(meta.get('timestamp_utc', ''))[:16]} UTC, {meta.get('cpu_model')}, {meta.get('usable_cores')} usable cores, "
+          f"{str(meta.get('timestamp_utc', ''))[:16]} UTC, {cpu_label(meta)}, {meta.get('usable_cores')} usable cores, "
           f"{res['elapsed_s'] / 60:.1f} min.", "",
           f"**Timing caveat**: {res.get('machine_note', MACHINE_NOTE)}.", "",
           f"Times: the matching call only (detection excluded, features cached), median of {res['repeats']} run(s), "

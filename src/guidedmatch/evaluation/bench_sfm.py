@@ -29,6 +29,7 @@ import numpy as np
 
 from ..config import MODES as MODES_ALL
 from ..sfm import COLMAP_MAX_IMAGE_SIZE, IMAGE_EXTENSIONS, SfmConfig
+from .meta import cpu_label
 from .poses import evaluate_poses, poses_from_reconstruction, read_strecha_cameras
 
 #: Feature settings: name -> (max_num_features, peak_threshold or None for COLMAP's default).
@@ -563,7 +564,7 @@ def run_benchmark(scene: Path, out: Path, settings=("8192", "50k"), methods=None
         write_json(out / "sfm.json", results)
     md = ["# guidedmatch in COLMAP: Herz-Jesus-P8 sfm benchmark", "",
           f"`{command}` -- {results['meta'].get('timestamp_utc')}, commit `{(results['meta'].get('git_commit') or '')[:10]}`, "
-          f"{results['meta'].get('cpu_model')}, {threads} threads. Load average "
+          f"{cpu_label(results['meta'])}, {threads} threads. Load average "
           f"{results['meta'].get('load_average') or float('nan'):.1f} when this run started (2 cores); rows kept from earlier runs "
           "(--merge) may come from a loaded machine: compare times within one run; inlier counts and poses are exact.", "", markdown_table(rows),
           *(["**End to end** (8192 features, defaults of `guidedmatch sfm`" + (

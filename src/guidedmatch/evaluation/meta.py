@@ -65,12 +65,39 @@ def cpu_model() -> str | None:
     return platform.processor() or None
 
 
+def cpu_vector(flags) -> str | None:
+    """The widest x86 SIMD extension among ``/proc/cpuinfo`` ``flags``: ``"AVX-512"``, ``"AVX2"``, ``"AVX"``,
+    ``"SSE4.2"``, or None. Our kernels (NumPy's BLAS, faiss, Numba) run twice as many lanes per instruction with
+    AVX-512 as with AVX2; COLMAP's matcher gains less from it, so the matching-time ratio depends on it (an AVX-512
+    Xeon: fox 0.49x COLMAP's; an AVX2 EPYC: 0.65x, accuracy history, twenty-second round).
+
+    >>> cpu_vector("fpu sse4_2 avx avx2 fma avx512f".split()), cpu_vector({"sse4_2", "avx", "avx2"}), cpu_vector(())
+    ('AVX-512', 'AVX2', None)
+    """
+    flags = set(flags)
+    for name, flag in (("AVX-512", "avx512f"), ("AVX2", "avx2"), ("AVX", "avx"), ("SSE4.2", "sse4_2")):
+        if flag in flags:
+            return name
+    return None
+
+
+def cpu_label(meta: dict) -> str:
+    """``"<cpu_model> (<cpu_vector>)"`` of a run's metadata for report headers, e.g. ``"AMD EPYC (AVX2)"``.
+
+    >>> cpu_label({"cpu_model": "AMD EPYC", "cpu_vector": "AVX2"}), cpu_label({"cpu_model": "x"}), cpu_label({})
+    ('AMD EPYC (AVX2)', 'x', 'None')
+    """
+    vec = meta.get("cpu_vector")
+    return f"{meta.get('cpu_model')}" + (f" ({vec})" if vec else "")
+
+
 def run_metadata(seed: int | None = None) -> dict[str, Any]:
     """Everything needed to interpret a benchmark number later, as one flat dict.
 
     Keys: ``git_commit`` (None outside a git checkout / before the first commit), ``git_dirty``;
     versions ``python``, ``numpy``, ``scipy``, ``cv2``, ``numba``, ``faiss``, ``guidedmatch`` (None when
-    not installed); ``cpu_model`` (``/proc/cpuinfo``), ``logical_cores`` (``os.cpu_count()``),
+    not installed); ``cpu_model`` (``/proc/cpuinfo``), ``cpu_vector`` (its widest SIMD extension:
+    :func:`cpu_vector`), ``logical_cores`` (``os.cpu_count()``),
     ``usable_cores`` (CPU affinity); threads: ``numba_num_threads`` (``numba.get_num_threads()``),
     ``cv2_num_threads``, ``faiss_omp_threads``, ``faiss_blas`` (the kernels of faiss's OpenBLAS:
     ``_runtime.faiss_blas``) and the environment variables ``NUMBA_NUM_THREADS``,
@@ -84,6 +111,12 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
     for name in ("numpy", "scipy", "cv2", "numba", "faiss", "guidedmatch"):
         meta[name] = _version(name)
     meta["cpu_model"] = cpu_model()
+    try:
+        from .._runtime import _cpu_flags
+
+        meta["cpu_vector"] = cpu_vector(_cpu_flags())
+    except Exception:  # noqa: BLE001 - no /proc/cpuinfo
+        meta["cpu_vector"] = None
     meta["logical_cores"] = os.cpu_count()
     try:
         meta["usable_cores"] = len(os.sched_getaffinity(0))
