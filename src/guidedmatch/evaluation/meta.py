@@ -95,7 +95,8 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
     """Everything needed to interpret a benchmark number later, as one flat dict.
 
     Keys: ``git_commit`` (None outside a git checkout / before the first commit), ``git_dirty``;
-    versions ``python``, ``numpy``, ``scipy``, ``cv2``, ``numba``, ``faiss``, ``guidedmatch`` (None when
+    versions ``python``, ``numpy``, ``scipy``, ``cv2``, ``numba``, ``faiss``, ``pycolmap`` (its SIFT and matcher
+    are the peers'), ``guidedmatch`` (None when
     not installed); ``cpu_model`` (``/proc/cpuinfo``), ``cpu_vector`` (its widest SIMD extension:
     :func:`cpu_vector`), ``logical_cores`` (``os.cpu_count()``),
     ``usable_cores`` (CPU affinity); threads: ``numba_num_threads`` (``numba.get_num_threads()``),
@@ -108,7 +109,7 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
     git = git_info()
     meta: dict[str, Any] = {"git_commit": git["commit"], "git_dirty": git["dirty"],
                             "python": sys.version.split()[0]}
-    for name in ("numpy", "scipy", "cv2", "numba", "faiss", "guidedmatch"):
+    for name in ("numpy", "scipy", "cv2", "numba", "faiss", "pycolmap", "guidedmatch"):
         meta[name] = _version(name)
     meta["cpu_model"] = cpu_model()
     try:
