@@ -1,25 +1,32 @@
-"""Oracle probe on fox (accuracy history, twenty-second round; fox's K and distortion are written below): re-select the mapper's inliers of every F row from the pair's raw matches, with F
-refit on the row's current inliers, in raw ('control') or undistorted ('oracle', the dataset's OpenCV distortion)
-pixel coordinates, within PX px (Sampson), at least 15 closest.  Planar rows and rows with <= 15 inliers untouched.
+"""Oracle probe on fox (accuracy history, twenty-second round): re-select the mapper's inliers of every F row from
+the pair's raw matches, with F refit on the row's current inliers, in raw ('control') or undistorted ('oracle': the
+scene's ``distortion.txt`` and reference K under ``GUIDEDMATCH_DATA``) pixel coordinates, within PX px (Sampson), at
+least 15 closest. Planar rows and rows with <= 15 inliers untouched.
 
-    python tools/raw_match_reselect.py DATABASE control|oracle PX [k1 k2 p1 p2]
+    python tools/raw_match_reselect.py DATABASE control|oracle PX [SCENE]     # SCENE default fox
 """
 import json
+import os
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
-import pycolmap
 
+import guidedmatch  # noqa: F401  (sets up the runtime before pycolmap)
+import pycolmap
 from guidedmatch.epipolar import sampson_distance
+from guidedmatch.evaluation.accuracy_scenes import distortion, reference_cameras
+from guidedmatch.evaluation.consistency import undistort
 from guidedmatch.geometry import closest_inliers
 
 db_path, mode, px = sys.argv[1], sys.argv[2], float(sys.argv[3])
-dist = np.array([float(v) for v in sys.argv[4:8]]) if len(sys.argv) >= 8 else \
-    np.array([0.0578421, -0.0805099, -0.000980296, 0.00015575])
-K = np.array([[1146.266667, 0, 462.131667], [0, 1145.408333, 804.390000], [0, 0, 1.0]])  # fox cameras.txt (OpenCV px)
+scene = sys.argv[4] if len(sys.argv) > 4 else "fox"
+root = Path(os.environ.get("GUIDEDMATCH_DATA", "../shared/data"))
+ref, dist = (reference_cameras(root, scene), distortion(root, scene)) if mode == "oracle" else ({}, None)
 
 db = pycolmap.Database.open(db_path)
+names = {int(img.image_id): img.name for img in db.read_all_images()}
 kps = {}
 
 
@@ -27,8 +34,7 @@ def pts(iid):
     if iid not in kps:
         x = np.asarray(db.read_keypoints(iid))[:, :2].astype(np.float64)   # COLMAP pixels (centre at .5)
         if mode == "oracle":
-            u = cv2.undistortPoints((x - 0.5).reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2) + 0.5
-            x = u
+            x = undistort(x - 0.5, ref[names[iid]].K, dist) + 0.5
         kps[iid] = x
     return kps[iid]
 

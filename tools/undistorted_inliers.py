@@ -23,18 +23,19 @@ from pathlib import Path
 import numpy as np
 
 
-def _swap_keypoints(db_path: Path, new: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-    """Write ``new[image_id]`` x, y into the database's keypoints; returns the previous keypoints."""
+def _swap_keypoints(db_path: Path, new_xy) -> dict[int, np.ndarray]:
+    """Write ``new_xy(image_id, name, keypoints)`` as the x, y of every image's keypoints in the database; returns
+    the previous keypoints."""
     import pycolmap
 
     db = pycolmap.Database.open(str(db_path))
     old = {}
     try:
-        for iid, xy in new.items():
-            kp = np.asarray(db.read_keypoints(iid), np.float32)
-            old[iid] = kp.copy()
-            kp = kp.copy()
-            kp[:, :2] = xy
+        for img in db.read_all_images():
+            iid = int(img.image_id)
+            old[iid] = np.asarray(db.read_keypoints(iid), np.float32).copy()
+            kp = old[iid].copy()
+            kp[:, :2] = new_xy(iid, img.name, old[iid])
             with pycolmap.DatabaseTransaction(db):
                 db.update_keypoints(iid, kp)
     finally:
@@ -44,7 +45,6 @@ def _swap_keypoints(db_path: Path, new: dict[int, np.ndarray]) -> dict[int, np.n
 
 def main() -> None:
     import guidedmatch  # noqa: F401  (sets up the runtime before pycolmap)
-    import pycolmap
 
     from guidedmatch.collection.sinks import ColmapSink
     from guidedmatch.evaluation.accuracy_scenes import distortion, reference_cameras
@@ -65,19 +65,13 @@ def main() -> None:
         ref, dist = reference_cameras(root, a.scene), distortion(root, a.scene)
         if dist is None:
             raise SystemExit(f"{a.scene}: no distortion.txt")
-        db = pycolmap.Database.open(str(a.out_db))
-        try:
-            names = {int(img.image_id): img.name for img in db.read_all_images()}
-            # COLMAP pixels (centre at +0.5) -> OpenCV pixels, undistorted, back
-            new = {i: (undistort(np.asarray(db.read_keypoints(i), np.float64)[:, :2] - 0.5, ref[n].K, dist)
-                       + 0.5).astype(np.float32) for i, n in names.items()}
-        finally:
-            db.close()
-        old = _swap_keypoints(a.out_db, new)
+        # COLMAP pixels (centre at +0.5) -> OpenCV pixels, undistorted, back
+        old = _swap_keypoints(a.out_db, lambda iid, name, kp: undistort(kp[:, :2].astype(np.float64) - 0.5,
+                                                                        ref[name].K, dist) + 0.5)
     with ColmapSink(a.out_db, geometry="ours") as sink:
         report = sink.tighten_inliers(a.px, refit_below_deg=a.refit_below_deg)
     if old is not None:
-        _swap_keypoints(a.out_db, {i: kp[:, :2] for i, kp in old.items()})
+        _swap_keypoints(a.out_db, lambda iid, name, kp: old[iid][:, :2])
     report.pop("time_s", None)
     print(json.dumps({"scene": a.scene, "undistort": a.undistort, **report}))
 

@@ -112,12 +112,9 @@ def run_metadata(seed: int | None = None) -> dict[str, Any]:
     for name in ("numpy", "scipy", "cv2", "numba", "faiss", "pycolmap", "guidedmatch"):
         meta[name] = _version(name)
     meta["cpu_model"] = cpu_model()
-    try:
-        from .._runtime import _cpu_flags
+    from .._runtime import _cpu_flags   # an empty set without /proc/cpuinfo: cpu_vector None
 
-        meta["cpu_vector"] = cpu_vector(_cpu_flags())
-    except Exception:  # noqa: BLE001 - no /proc/cpuinfo
-        meta["cpu_vector"] = None
+    meta["cpu_vector"] = cpu_vector(_cpu_flags())
     meta["logical_cores"] = os.cpu_count()
     try:
         meta["usable_cores"] = len(os.sched_getaffinity(0))
