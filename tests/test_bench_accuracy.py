@@ -179,6 +179,23 @@ def test_intersection_and_free_union_of_inlier_sets():
     assert not np.isin(extra[:, 0], a[:, 0]).any() and not np.isin(extra[:, 1], a[:, 1]).any()
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.integers(2, 30), st.sampled_from([None, 0.8, 0.6]))
+def test_global_ratio_test_matches_a_loop(seed, nq, nt, ratio):
+    # byte-valued descriptors (SIFT): the GEMM form is exact, so it must agree with a plain loop, ties included
+    rng = np.random.default_rng(seed)
+    t = rng.integers(0, 4, size=(nt, 8)).astype(np.float32)   # few values: ties are common
+    q = rng.integers(0, 4, size=(nq, 8)).astype(np.float32)
+    partner = rng.integers(0, nt, size=nq)
+    got = aa.global_test(q, t, partner, ratio)
+    for k in range(nq):
+        d = [math.dist(q[k], t[j]) for j in range(nt)]
+        mine = d[partner[k]]
+        other = min(d[j] for j in range(nt) if j != partner[k])
+        want = mine <= other and (ratio is None or mine < ratio * other)
+        assert got[k] == want
+
+
 def test_verdict_inliers_read_from_the_line_guidedmatch_colmap_prints(tmp_path):
     """The verified inliers before the mapper's selection come from the very line ``guidedmatch colmap`` prints
     (describe_tightening); a run that printed none tightened nothing; ours+cap reads ours'; COLMAP's are its own."""

@@ -7,6 +7,8 @@ whose two-view geometries are rewritten, then mapped and scored like the base me
   correspondences (and the pairs) we add;
 * ``colmap+added``: COLMAP's inliers plus ours on keypoints COLMAP left unmatched (and our pairs COLMAP did not
   verify) -- restores them on COLMAP's side;
+* ``ours+lacked``: ours plus COLMAP's inliers on keypoints we left unmatched (and COLMAP's pairs we did not verify)
+  -- restores what we lack on our side (an oracle);
 * ``ours-epi``: our inliers within 4 px of the reference epipolar lines (an oracle: wrong matches removed);
 * ``ours-epi1``: within 1 px (an oracle of localisation precision: the least precise third removed, about);
 * ``ours-judged``: our inliers not labelled wrong or uncertain (> 3 px) by the model mapped from COLMAP's own matches
@@ -18,6 +20,9 @@ whose two-view geometries are rewritten, then mapped and scored like the base me
   tighter two-view threshold);
 * ``ours-scale``: our inliers whose keypoint scale ratio is within a factor 2^0.5 of the pair's median ratio (no
   oracle); ``ours+rejected-scale``: the same on ``ours+rejected``;
+* ``ours-distinct``: our inliers that pass the exact ratio test against all of image 2 (the partner is the nearest
+  neighbour, at < 0.8 of the second's distance: COLMAP's matcher's test; a pair left with < 15 keeps all -- no
+  oracle); ``ours-nn``: our inliers whose partner is the nearest neighbour in all of image 2 (no ratio test);
 * ``ours-3view``: our inliers a third view confirms; ``ours-contra``: our inliers minus those a third view
   contradicts (:mod:`guidedmatch.collection.rescue`; no oracle).
 
@@ -37,6 +42,7 @@ from .meta import default_cache
 VARIANTS = {
     "ours-added": ("ours", "our inliers that COLMAP also verified, only"),
     "colmap+added": ("colmap", "COLMAP's inliers plus ours on keypoints COLMAP left free"),
+    "ours+lacked": ("ours", "ours plus COLMAP's inliers on keypoints we left free (oracle)"),
     "ours-epi": ("ours", "our inliers within 4 px of the reference epipolar lines (oracle)"),
     "ours-epi1": ("ours", "our inliers within 1 px of the reference epipolar lines (oracle)"),
     "ours-judged": ("ours", "our inliers consistent (<= 3 px) with COLMAP's seed-0 model (oracle)"),
@@ -45,6 +51,8 @@ VARIANTS = {
     "ours-f1": ("ours", "our inliers within 1 px of the epipolar lines of our own two-view F"),
     "ours-scale": ("ours", "our inliers whose scale ratio is within 2^0.5 of the pair's median ratio"),
     "ours+rejected-scale": ("ours+rejected", "ours+rejected, then the ours-scale filter"),
+    "ours-distinct": ("ours", "our inliers that pass the ratio test (0.8) against all of image 2, no oracle"),
+    "ours-nn": ("ours", "our inliers whose partner is the nearest neighbour in all of image 2, no oracle"),
     "ours-contra": ("ours", "our inliers minus those a third view contradicts (collection.rescue."
                     "contradicted_by_third_view), no oracle"),
     "ours-3view": ("ours", "our inliers confirmed by a third view (collection.rescue.confirmed_by_third_view), no oracle"),
@@ -176,14 +184,14 @@ def make_variant(method: str, cache: Path, db: Path, threads: int, *, match) -> 
     copy_database(cache / base.replace("+", "_") / "database.db", db)
     t0 = time.perf_counter()
     geoms = read_geometries(db)
-    if method in ("ours-added", "colmap+added", "ours+rejected"):
+    if method in ("ours-added", "colmap+added", "ours+rejected", "ours+lacked"):
         other = read_geometries(cache / ("colmap" if base == "ours" else "ours") / "database.db")
     if method == "ours-added":
         new = {p: intersect_inliers(m, other.get(p, np.zeros((0, 2), np.int64))) for p, m in geoms.items()}
         donor = None
-    elif method == "colmap+added":
+    elif method in ("colmap+added", "ours+lacked"):
         new = {p: union_free(geoms.get(p, np.zeros((0, 2), np.int64)), m) for p, m in other.items()}
-        donor = cache / "ours" / "database.db"
+        donor = cache / ("ours" if base == "colmap" else "colmap") / "database.db"
     elif method == "ours+rejected":
         new = {p: m for p, m in other.items() if p not in geoms}
         donor = cache / "colmap" / "database.db"
@@ -194,6 +202,8 @@ def make_variant(method: str, cache: Path, db: Path, threads: int, *, match) -> 
         new, donor = _three_view(db, contra=method == "ours-contra"), None
     elif method in ("ours-f1", "ours-scale", "ours+rejected-scale"):
         new, donor = _self_filter(db, "ours-scale" if method.endswith("-scale") else method), None
+    elif method in ("ours-distinct", "ours-nn"):
+        new, donor = _global_filter(db, ratio=0.8 if method == "ours-distinct" else None), None
     elif method == "ours-judged":
         new, donor = _judged(db, cache / "colmap" / "seed0" / "sparse" / "0"), None
     info = rewrite_geometries(db, new, donor)
@@ -483,6 +493,54 @@ def _self_filter(db_path: Path, method: str, f_px: float = 1.0, log2_scale: floa
                 s2 = np.sqrt(np.abs(b[:, 2] * b[:, 5] - b[:, 3] * b[:, 4]))
                 lr = np.log2(s1 / s2)
                 out[(i1, i2)] = m[np.abs(lr - np.median(lr)) <= log2_scale]
+    finally:
+        db.close()
+    return out
+
+
+def global_test(q: np.ndarray, t: np.ndarray, partner: np.ndarray, ratio: float | None = 0.8) -> np.ndarray:
+    """Which matches ``q[k] -> t[partner[k]]`` pass a ratio test against all of ``t`` (bool per row): the partner is
+    a nearest neighbour (ties count) and, with ``ratio``, its distance is < ``ratio`` x the distance of the best other
+    row of ``t`` (L2). Exact for byte-valued descriptors (float32 sums of integers < 2^24, any order).
+
+    >>> t = np.array([[0, 0], [10, 0], [0, 10], [11, 0]], np.float32)
+    >>> global_test(np.array([[1, 0], [10.5, 0], [4, 4]], np.float32), t, np.array([0, 1, 2])).tolist()
+    [True, False, False]
+    >>> global_test(np.array([[1, 0], [10.5, 0], [4, 4]], np.float32), t, np.array([0, 1, 2]), None).tolist()
+    [True, True, False]
+    """
+    q = np.asarray(q, np.float32)
+    t = np.asarray(t, np.float32)
+    partner = np.asarray(partner, np.int64)
+    if len(q) == 0:
+        return np.zeros(0, bool)
+    d2 = np.maximum((q * q).sum(1)[:, None] + (t * t).sum(1)[None, :] - 2 * (q @ t.T), 0)
+    rows = np.arange(len(q))
+    mine = d2[rows, partner]
+    d2[rows, partner] = np.inf
+    other = d2.min(1)
+    ok = mine <= other
+    if ratio is not None:
+        ok &= np.sqrt(mine) < ratio * np.sqrt(other)
+    return ok
+
+
+def _global_filter(db_path: Path, ratio: float | None, keep_below: int = 15) -> dict:
+    """``ours-distinct`` / ``ours-nn``: each row's inliers that pass :func:`global_test` (a row left with fewer than
+    ``keep_below`` keeps all of them)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    out, desc = {}, {}
+    try:
+        def d(i):
+            if i not in desc:
+                desc[i] = np.asarray(db.read_descriptors(i).data, np.float32)
+            return desc[i]
+
+        for (i1, i2), m in read_geometries(db_path).items():
+            ok = global_test(d(i1)[m[:, 0]], d(i2), m[:, 1], ratio)
+            out[(i1, i2)] = m[ok] if ok.sum() >= keep_below else m
     finally:
         db.close()
     return out
