@@ -570,7 +570,8 @@ def _in_final_region_reference(models, i, j):
             ok = lo[0] <= x2 <= hi[0]
         else:
             r = models.inlier_x1_range
-            ok = (models.outside_window == "band" and models.F is not None and r[0] <= x1 <= r[1])
+            ok = models.F is not None and (models.outside_window == "band_all"
+                                           or (models.outside_window == "band" and r[0] <= x1 <= r[1]))
     if models.F is not None:
         a, b, c = models.F_aligned @ np.array([x1, y1, 1.0])
         ok = ok and abs(a * x2 + b * y2 + c) / math.hypot(a, b) <= models.band_px
@@ -875,7 +876,7 @@ def test_ransac_draws_formula(w):
 
 @settings(max_examples=80, deadline=None)
 @given(n=st.integers(30, 300), good=st.floats(0.3, 1.0), seed=st.integers(0, 2**31 - 1), with_f=st.booleans(),
-       outside=st.sampled_from(["drop", "band"]), degenerate=st.booleans())
+       outside=st.sampled_from(["drop", "band", "band_all"]), degenerate=st.booleans())
 def test_search_regions_kernel_equals_the_numpy_formulation(n, good, seed, with_f, outside, degenerate):
     """The nogil search-region kernel against admissible_x_ranges + map_points (exact: same arithmetic)."""
     from guidedmatch.matcher import search_regions

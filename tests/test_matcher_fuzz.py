@@ -68,7 +68,7 @@ def feature_pairs(draw):
     mode = draw(st.sampled_from(MODES))
     cfg = MatcherConfig(update_every=draw(st.integers(8, 60)), num_updates=draw(st.integers(0, 3)),
                         batch_size=draw(st.sampled_from([8, 64])), min_model_matches=draw(st.sampled_from([8, 16])),
-                        outside_window=draw(st.sampled_from(["drop", "band"])))
+                        outside_window=draw(st.sampled_from(["drop", "band", "band_all"])))
     return f1, f2, mode, cfg, (lay1, lay2, binary, related)
 
 

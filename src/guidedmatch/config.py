@@ -128,9 +128,10 @@ class MatcherConfig:
                                          # 0.205 deg, P25 0.366 -> 0.361, COLMAP 0.214 / 0.381); 0: the pair's median
     frame_check_scope: Literal["all", "guided"] = "all"  # frame_check: every match, or only the guided ones (the
                                          # unguided ones passed the ratio test against all of image 2, as in BF)
-    outside_window: Literal["drop", "band"] = "band"  # image-1 feature outside the SO window ω*: "drop" (paper
-                                         # §III-B.2) or, when an F model exists and the feature lies within the x-extent
-                                         # of the F inliers, "band": match it in the epipolar band only (beyond the paper)
+    outside_window: Literal["drop", "band", "band_all"] = "band"  # image-1 feature outside the SO window ω*: "drop"
+                                         # (paper §III-B.2) or, when an F model exists and the feature lies within the
+                                         # x-extent of the F inliers, "band": match it in the epipolar band only (beyond
+                                         # the paper); "band_all": every feature outside ω* in the band
     min_model_matches: int = 16          # fewer correspondences than this: no model is fitted (reported)
     seed: int = 0                        # seeds RANSAC and the draw order within groups without responses
     start: Literal["verified", "paper"] = "verified"  # "verified": the first model guides only once the two-view verdict
@@ -200,7 +201,7 @@ class MatcherConfig:
         check_number(o, "frame_check_octaves", self.frame_check_octaves, lo=0, lo_open=True)
         check_number(o, "frame_check_grid", self.frame_check_grid, lo=0, hi=64, integer=True)
         check_choice(o, "frame_check_scope", self.frame_check_scope, ("all", "guided"))
-        check_choice(o, "outside_window", self.outside_window, ("drop", "band"))
+        check_choice(o, "outside_window", self.outside_window, ("drop", "band", "band_all"))
         check_number(o, "min_model_matches", self.min_model_matches, lo=8, integer=True)
         check_number(o, "seed", self.seed, lo=0, integer=True)
         check_choice(o, "start", self.start, ("verified", "paper"))

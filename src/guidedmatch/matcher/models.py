@@ -51,7 +51,7 @@ def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x
     The spatial-order x-range (§III-C, :func:`~guidedmatch.spatial_order.admissible_x_ranges`) when ``so`` is given,
     the epipolar band's line (§III-D) when ``F_aligned`` is given. With ``outside_window="band"``, features outside
     ω* whose x lies in ``inlier_x1_range`` (the x-extent of the F inliers in aligned image 1) are rescued: matched in
-    the band only.
+    the band only; with ``"band_all"`` every feature outside ω* is (when there is an F).
 
     One ``nogil`` kernel (:func:`guidedmatch.kernels.search_regions_kernel`; it runs for every guided batch of every
     pair, and a collection's pair threads otherwise held the GIL for it); :func:`_search_regions_numpy` is the same
@@ -68,8 +68,9 @@ def search_regions(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, inlier_x
                    np.ascontiguousarray(so.x2_sorted, np.float64), int(so.n_window))
     else:
         so_args = (np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0.0, 0.0, np.zeros(0), 0)
-    rescue = use_so and outside_window == "band" and F_aligned is not None and inlier_x1_range is not None
-    r_lo, r_hi = (float(inlier_x1_range[0]), float(inlier_x1_range[1])) if rescue else (0.0, 0.0)
+    x_range = (-np.inf, np.inf) if outside_window == "band_all" else inlier_x1_range
+    rescue = use_so and outside_window in ("band", "band_all") and F_aligned is not None and x_range is not None
+    r_lo, r_hi = (float(x_range[0]), float(x_range[1])) if rescue else (0.0, 0.0)
     use_F = F_aligned is not None
     F = np.ascontiguousarray(F_aligned, np.float64) if use_F else np.eye(3)
     keep, lo, hi, lines, rescued = kernels.search_regions_kernel(p, use_so, *so_args, rescue, r_lo, r_hi, use_F, F)
@@ -87,8 +88,9 @@ def _search_regions_numpy(pts1a: np.ndarray, so, F_aligned: np.ndarray | None, i
 
         keep, lo, hi, _ = admissible_x_ranges(so, pts1a[:, 0])
         keep, lo, hi = np.asarray(keep, bool), np.asarray(lo, np.float64).copy(), np.asarray(hi, np.float64).copy()
-        if outside_window == "band" and F_aligned is not None and inlier_x1_range is not None:
-            rescued = ~keep & (pts1a[:, 0] >= inlier_x1_range[0]) & (pts1a[:, 0] <= inlier_x1_range[1])
+        x_range = (-np.inf, np.inf) if outside_window == "band_all" else inlier_x1_range
+        if outside_window in ("band", "band_all") and F_aligned is not None and x_range is not None:
+            rescued = ~keep & (pts1a[:, 0] >= x_range[0]) & (pts1a[:, 0] <= x_range[1])
             keep = keep | rescued
             lo[rescued], hi[rescued] = -np.inf, np.inf
     lines = None
@@ -113,7 +115,7 @@ class GuidanceModels:
         H1, H2: alignment homographies applied to image-1 / image-2 keypoints (identity without IA).
         so: the :class:`~guidedmatch.spatial_order.SpatialOrderModel` (aligned x), or None.
         pts1a, pts2a: aligned keypoints ``(N1,2)``, ``(N2,2)``.
-        band_px: epipolar band half-width (aligned pixels). outside_window: the run's policy ("drop" | "band").
+        band_px: epipolar band half-width (aligned pixels). outside_window: the run's policy ("drop" | "band" | "band_all").
         final_queries: image-1 indices matched in the final vectorized pass (set on the final models).
     """
 
