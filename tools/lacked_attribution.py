@@ -53,7 +53,7 @@ def main() -> None:
         why["missed: a or b matched to another"] += int(other.sum())
         miss = miss[~other]
         if not res.geometry or models is None:
-            why["missed: pair not verified here"] += len(miss)
+            why["missed: pair not verified here, or no final models"] += len(miss)
             continue
         final = np.isin(miss[:, 0], models.final_queries)
         why["missed: a drawn before the final pass"] += int((~final).sum())
