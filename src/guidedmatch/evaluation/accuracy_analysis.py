@@ -501,7 +501,8 @@ def _self_filter(db_path: Path, method: str, f_px: float = 1.0, log2_scale: floa
 def global_test(q: np.ndarray, t: np.ndarray, partner: np.ndarray, ratio: float | None = 0.8) -> np.ndarray:
     """Which matches ``q[k] -> t[partner[k]]`` pass a ratio test against all of ``t`` (bool per row): the partner is
     a nearest neighbour (ties count) and, with ``ratio``, its distance is < ``ratio`` x the distance of the best other
-    row of ``t`` (L2). Exact for byte-valued descriptors (float32 sums of integers < 2^24, any order).
+    row of ``t`` (L2). Exact for byte-valued descriptors of up to 128 dimensions (SIFT: every float32 sum is an
+    integer < 2^24, in any order).
 
     >>> t = np.array([[0, 0], [10, 0], [0, 10], [11, 0]], np.float32)
     >>> global_test(np.array([[1, 0], [10.5, 0], [4, 4]], np.float32), t, np.array([0, 1, 2])).tolist()
