@@ -27,12 +27,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from pair_phase_times import prepared_images  # noqa: E402
 
 
-def main() -> None:
+def sampled_pairs(folder: Path, npairs: int):
+    """One thread for every kernel; ``npairs`` random pairs (``random.seed(0)``) both databases of the scene folder
+    verify, as ``(name1, name2, COLMAP's inliers)``, and every image of them prepared and indexed."""
     import cv2
     import faiss
     import pycolmap
 
-    folder, npairs, variants = Path(sys.argv[1]), int(sys.argv[2]), json.loads(sys.argv[3])
     kernels.limit_threads_here(1)
     cv2.setNumThreads(1)
     faiss.omp_set_num_threads(1)
@@ -44,7 +45,12 @@ def main() -> None:
     db.close()
     random.seed(0)
     pairs = [(names[p[0]], names[p[1]], col[p]) for p in random.sample(sorted(set(col) & set(ours)), npairs)]
-    prep = prepared_images(str(ours_db), [(a, b) for a, b, _ in pairs])
+    return pairs, prepared_images(str(ours_db), [(a, b) for a, b, _ in pairs])
+
+
+def main() -> None:
+    folder, npairs, variants = Path(sys.argv[1]), int(sys.argv[2]), json.loads(sys.argv[3])
+    pairs, prep = sampled_pairs(folder, npairs)
     for name, over in variants.items():
         over = dict(over)
         mode = over.pop("_mode", "so+epi+ia")

@@ -9,7 +9,6 @@ re-check or the frame check decided) (accuracy history, twenty-third round).
 from __future__ import annotations
 
 import collections
-import random
 import sys
 from pathlib import Path
 
@@ -17,31 +16,14 @@ import numpy as np
 
 from guidedmatch import kernels  # noqa: F401 -- before faiss (OpenBLAS set-up)
 from guidedmatch.collection.config import collection_matcher_config
-from guidedmatch.evaluation.accuracy_analysis import read_geometries
 from guidedmatch.matcher import match
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from pair_phase_times import prepared_images  # noqa: E402
+from colmap_inliers_found import sampled_pairs  # noqa: E402
 
 
 def main() -> None:
-    import cv2
-    import faiss
-    import pycolmap
-
-    folder, npairs = Path(sys.argv[1]), int(sys.argv[2])
-    kernels.limit_threads_here(1)
-    cv2.setNumThreads(1)
-    faiss.omp_set_num_threads(1)
-    col = read_geometries(folder / "colmap" / "database.db")
-    ours_db = folder / "ours" / "database.db"
-    ours = read_geometries(ours_db)
-    db = pycolmap.Database.open(str(ours_db))
-    names = {int(i.image_id): i.name for i in db.read_all_images()}
-    db.close()
-    random.seed(0)
-    pairs = [(names[p[0]], names[p[1]], col[p]) for p in random.sample(sorted(set(col) & set(ours)), npairs)]
-    prep = prepared_images(str(ours_db), [(a, b) for a, b, _ in pairs])
+    pairs, prep = sampled_pairs(Path(sys.argv[1]), int(sys.argv[2]))
     cfg = collection_matcher_config(None)
     why = collections.Counter()
     for a, b, cm in pairs:
