@@ -20,7 +20,7 @@ import numpy as np
 
 from guidedmatch import kernels  # noqa: F401 -- before faiss (OpenBLAS set-up)
 from guidedmatch.collection.config import collection_matcher_config
-from guidedmatch.evaluation.accuracy_analysis import read_geometries
+from guidedmatch.evaluation.accuracy_analysis import _keys, read_geometries
 from guidedmatch.matcher import match
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -59,7 +59,7 @@ def main() -> None:
         for a, b, cm in pairs:
             r = match(prep[a], prep[b], mode, cfg)
             m = np.asarray(r.pairs, np.int64)
-            found = np.isin(cm[:, 0] << 32 | cm[:, 1], m[:, 0] << 32 | m[:, 1])
+            found = np.isin(_keys(cm), _keys(m))
             tot["colmap"] += len(cm)
             tot["found"] += int(found.sum())
             tot["matches"] += len(m)

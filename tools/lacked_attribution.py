@@ -16,6 +16,7 @@ import numpy as np
 
 from guidedmatch import kernels  # noqa: F401 -- before faiss (OpenBLAS set-up)
 from guidedmatch.collection.config import collection_matcher_config
+from guidedmatch.evaluation.accuracy_analysis import _keys
 from guidedmatch.matcher import match
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -30,7 +31,7 @@ def main() -> None:
         res, models = match(prep[a], prep[b], "so+epi+ia", cfg, return_models=True)
         m = np.asarray(res.pairs, np.int64)
         why["COLMAP's inliers"] += len(cm)
-        miss = cm[~np.isin(cm[:, 0] << 32 | cm[:, 1], m[:, 0] << 32 | m[:, 1])]
+        miss = cm[~np.isin(_keys(cm), _keys(m))]
         other = np.isin(miss[:, 0], m[:, 0]) | np.isin(miss[:, 1], m[:, 1])
         why["missed: a or b matched to another"] += int(other.sum())
         miss = miss[~other]

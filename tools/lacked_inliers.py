@@ -31,13 +31,10 @@ import numpy as np
 import pycolmap
 
 from guidedmatch.collection.sinks import _model_error
-from guidedmatch.evaluation.accuracy_analysis import global_test, read_geometries, rewrite_geometries, union_free
+from guidedmatch.evaluation.accuracy_analysis import (_keys, global_distances, global_test, ratio_test, read_geometries,
+                                                      rewrite_geometries, union_free)
 
 BANDS = ((1, 1, "1"), (2, 4, "2-4"), (5, 16, "5-16"), (17, 10**9, "17+"))
-
-
-def _keys(m: np.ndarray) -> np.ndarray:
-    return m[:, 0].astype(np.int64) << 32 | m[:, 1].astype(np.int64)
 
 
 class Scene:
@@ -99,8 +96,8 @@ def breakdown(folder: Path) -> None:
         added = union_free(base, m)[len(base):]
         if len(added) == 0:
             continue
-        nn = global_test(s.desc(p[0])[added[:, 0]], s.desc(p[1]), added[:, 1], None)
-        distinct = global_test(s.desc(p[0])[added[:, 0]], s.desc(p[1]), added[:, 1], 0.8)
+        d = global_distances(s.desc(p[0])[added[:, 0]], s.desc(p[1]), added[:, 1])
+        nn, distinct = ratio_test(*d, None), ratio_test(*d, 0.8)
         add["added"] += len(added)
         add["distinct"] += int(distinct.sum())
         add["nearest but ambiguous"] += int((nn & ~distinct).sum())

@@ -498,11 +498,35 @@ def _self_filter(db_path: Path, method: str, f_px: float = 1.0, log2_scale: floa
     return out
 
 
+def global_distances(q: np.ndarray, t: np.ndarray, partner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared L2 distances of the matches ``q[k] -> t[partner[k]]`` and of each ``q[k]`` to the best other row of
+    ``t``: ``(mine, other)``, float32 ``(Q,)``. Exact for byte-valued descriptors of up to 128 dimensions (SIFT:
+    every float32 sum is an integer < 2^24, in any order)."""
+    q = np.asarray(q, np.float32)
+    t = np.asarray(t, np.float32)
+    partner = np.asarray(partner, np.int64)
+    if len(q) == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.float32)
+    d2 = np.maximum((q * q).sum(1)[:, None] + (t * t).sum(1)[None, :] - 2 * (q @ t.T), 0)
+    rows = np.arange(len(q))
+    mine = d2[rows, partner]
+    d2[rows, partner] = np.inf
+    return mine, d2.min(1)
+
+
+def ratio_test(mine: np.ndarray, other: np.ndarray, ratio: float | None = 0.8) -> np.ndarray:
+    """The matches of :func:`global_distances` whose partner is a nearest neighbour (ties count) and, with
+    ``ratio``, at < ``ratio`` x the best other's distance (L2)."""
+    ok = mine <= other
+    if ratio is not None:
+        ok &= np.sqrt(mine) < ratio * np.sqrt(other)
+    return ok
+
+
 def global_test(q: np.ndarray, t: np.ndarray, partner: np.ndarray, ratio: float | None = 0.8) -> np.ndarray:
     """Which matches ``q[k] -> t[partner[k]]`` pass a ratio test against all of ``t`` (bool per row): the partner is
     a nearest neighbour (ties count) and, with ``ratio``, its distance is < ``ratio`` x the distance of the best other
-    row of ``t`` (L2). Exact for byte-valued descriptors of up to 128 dimensions (SIFT: every float32 sum is an
-    integer < 2^24, in any order).
+    row of ``t`` (L2; :func:`global_distances`, :func:`ratio_test`).
 
     >>> t = np.array([[0, 0], [10, 0], [0, 10], [11, 0]], np.float32)
     >>> global_test(np.array([[1, 0], [10.5, 0], [4, 4]], np.float32), t, np.array([0, 1, 2])).tolist()
@@ -510,20 +534,7 @@ def global_test(q: np.ndarray, t: np.ndarray, partner: np.ndarray, ratio: float 
     >>> global_test(np.array([[1, 0], [10.5, 0], [4, 4]], np.float32), t, np.array([0, 1, 2]), None).tolist()
     [True, True, False]
     """
-    q = np.asarray(q, np.float32)
-    t = np.asarray(t, np.float32)
-    partner = np.asarray(partner, np.int64)
-    if len(q) == 0:
-        return np.zeros(0, bool)
-    d2 = np.maximum((q * q).sum(1)[:, None] + (t * t).sum(1)[None, :] - 2 * (q @ t.T), 0)
-    rows = np.arange(len(q))
-    mine = d2[rows, partner]
-    d2[rows, partner] = np.inf
-    other = d2.min(1)
-    ok = mine <= other
-    if ratio is not None:
-        ok &= np.sqrt(mine) < ratio * np.sqrt(other)
-    return ok
+    return ratio_test(*global_distances(q, t, partner), ratio)
 
 
 def _global_filter(db_path: Path, ratio: float | None, keep_below: int = 15) -> dict:
